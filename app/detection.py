@@ -1,0 +1,301 @@
+"""Stage 1 — moving-object detection from a moving camera (paper Alg. 1, §3-F).
+
+Camera motion between consecutive frames is modelled as a homography estimated from
+Lucas–Kanade flow in a few small windows on the frame border. The previous and next
+frames are warped onto the current one; the two absolute differences are merged,
+median-filtered, dilated and thresholded into a binary motion mask.
+
+Because the next frame is needed, the mask of frame t exists once frame t+1 has
+arrived: one frame of built-in latency.
+
+All images are 8-bit grey, shape (H, W), in image pixel coordinates (x right, y down).
+A homography ``H_a_b`` maps pixel coordinates of frame a to those of frame b.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from app.config import DetectionConfig
+from app.errors import SourceError
+from app.ratelimit import RateLimitedLogger
+
+log = RateLimitedLogger(logging.getLogger(__name__), period_s=5.0)
+
+Box = tuple[float, float, float, float]  # x, y, w, h in image px (top-left corner and size)
+
+# goodFeaturesToTrack over the whole frame: the usual choice of full-frame stabilisers
+# (OpenCV's videostab motion estimator defaults to 1000; 500 is a common lighter setting).
+FULL_FRAME_CORNERS = 500
+
+
+def border_windows(width: int, height: int, size: int, count: int) -> list[tuple[int, int, int, int]]:
+    """The border windows ``(x0, y0, x1, y1)`` (paper Fig. 20): corners first, then the
+    top/bottom middles (count 6), then the left/right middles (count 8)."""
+    if width < 3 * size or height < 3 * size:
+        raise SourceError(
+            f"frame {width}x{height} is too small for the detection windows: "
+            f"perception.detection.window_px = {size} needs at least {3 * size}x{3 * size}"
+        )
+    xs = (0, (width - size) // 2, width - size)
+    ys = (0, (height - size) // 2, height - size)
+    order = [(0, 0), (2, 0), (0, 2), (2, 2), (1, 0), (1, 2), (0, 1), (2, 1)]
+    return [(xs[i], ys[j], xs[i] + size, ys[j] + size) for i, j in order[:count]]
+
+
+@dataclass
+class DetectionResult:
+    """The motion mask of one frame (the one *before* the frame just pushed)."""
+
+    mask: np.ndarray | None  # uint8 (H, W), 255 = moving; None when the frame was skipped
+    status: str  # "ok", "one_sided", "no_homography", "warmup", "scene_cut"
+    homography: np.ndarray | None  # H_{t-1,t}: previous frame px -> this frame px, or None
+    inliers: int  # RANSAC inliers of the newest homography estimate
+    excluded_windows: int  # border windows left out because a tracked object overlaps them
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+class MotionDetector:
+    """Homography-compensated three-frame differencing.
+
+    Parameters
+    ----------
+    cfg
+        Thresholds and sizes (see :class:`app.config.DetectionConfig`; units in its docs).
+    full_frame
+        Track features over the whole frame instead of the border windows. Only for the
+        benchmark's baseline: it is what the windows are measured against.
+    """
+
+    def __init__(self, cfg: DetectionConfig, full_frame: bool = False) -> None:
+        self.cfg = cfg
+        self.full_frame = full_frame
+        self._lk_params = dict(
+            winSize=(cfg.lk_window_px, cfg.lk_window_px),
+            maxLevel=cfg.lk_pyramid_levels,
+            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.lk_max_iterations, 0.03),
+            minEigThreshold=cfg.lk_min_eigen,
+        )
+        k = cfg.dilate_ksize
+        self._dilate_kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)) if k > 1 else None
+        self._shape: tuple[int, int] | None = None
+        self._windows: list[tuple[int, int, int, int]] = []
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+
+    def reset(self) -> None:
+        """Forget all frames (after a scene cut, or at a new source)."""
+        self._prev: np.ndarray | None = None  # frame t-1
+        self._cur: np.ndarray | None = None  # frame t
+        self._h_prev_cur: np.ndarray | None = None  # H_{t-1,t}
+        self._hist_cur: np.ndarray | None = None
+        self._pts = np.empty((0, 2), np.float32)  # tracked points in frame t, px
+        self._pt_win = np.empty(0, np.int32)  # window index of each point
+
+    def _configure(self, shape: tuple[int, int]) -> None:
+        h, w = shape
+        c = self.cfg
+        if self.full_frame:
+            if w < 3 * c.window_px or h < 3 * c.window_px:
+                border_windows(w, h, c.window_px, c.window_count)  # raises the same error
+            self._windows = [(0, 0, w, h)]
+        else:
+            self._windows = border_windows(w, h, c.window_px, c.window_count)
+        self._shape = shape
+
+    # ------------------------------------------------------------------ main step
+
+    def push(self, gray: np.ndarray, exclude: list[Box] | tuple[Box, ...] = ()) -> DetectionResult:
+        """Add frame t+1; return the motion mask of frame t.
+
+        ``exclude`` holds boxes of tracked objects in frame t: border windows that
+        overlap them do not vote on the homography.
+        """
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise ValueError(f"expected an 8-bit grey image, got {gray.dtype} {gray.shape}")
+        if self._shape != gray.shape:
+            if self._shape is not None:
+                raise SourceError(
+                    f"frame size changed from {self._shape[1]}x{self._shape[0]} "
+                    f"to {gray.shape[1]}x{gray.shape[0]}"
+                )
+            self._configure(gray.shape)
+        t0 = time.perf_counter()
+        timings: dict[str, float] = {}
+
+        hist = _grey_histogram(gray)
+        if self._cur is None:
+            self._start(gray, hist)
+            return DetectionResult(None, "warmup", None, 0, 0, timings)
+        assert self._hist_cur is not None
+        if cv2.compareHist(self._hist_cur, hist, cv2.HISTCMP_CORREL) < self.cfg.scene_cut_correlation:
+            log.info("scene_cut", "scene cut detected: detector reset")
+            self.reset()
+            self._start(gray, hist)
+            return DetectionResult(None, "scene_cut", None, 0, 0, timings)
+
+        excluded = self._excluded_windows(exclude)
+        h_cur_next, inliers, next_pts, next_win = self._estimate(self._cur, gray, excluded)
+        t1 = time.perf_counter()
+        timings["flow_ms"] = (t1 - t0) * 1e3
+
+        mask, status = self._difference(gray, h_cur_next)
+        timings["difference_ms"] = (time.perf_counter() - t1) * 1e3
+        if status == "no_homography":
+            log.warning("no_h", "homography not estimated (%d inliers): frame skipped", inliers)
+
+        result = DetectionResult(mask, status, self._h_prev_cur, inliers, len(excluded), timings)
+        # Shift: t+1 becomes the current frame; H_{t,t+1} becomes next step's H_{t-1,t}.
+        self._prev, self._cur, self._hist_cur = self._cur, gray, hist
+        self._h_prev_cur = h_cur_next
+        self._pts, self._pt_win = next_pts, next_win
+        self._reseed(gray)
+        return result
+
+    def _start(self, gray: np.ndarray, hist: np.ndarray) -> None:
+        self._cur, self._hist_cur = gray, hist
+        self._reseed(gray)
+
+    # ------------------------------------------------------------------ homography
+
+    def _excluded_windows(self, boxes: list[Box] | tuple[Box, ...]) -> set[int]:
+        if not boxes or self.full_frame:
+            return set()
+        m = self.cfg.object_margin_px
+        out: set[int] = set()
+        for i, (x0, y0, x1, y1) in enumerate(self._windows):
+            for bx, by, bw, bh in boxes:
+                if bx - m < x1 and bx + bw + m > x0 and by - m < y1 and by + bh + m > y0:
+                    out.add(i)
+                    break
+        return out
+
+    def _estimate(
+        self, cur: np.ndarray, nxt: np.ndarray, excluded: set[int]
+    ) -> tuple[np.ndarray | None, int, np.ndarray, np.ndarray]:
+        """H_{t,t+1} from LK flow of the tracked points; also the surviving points in t+1."""
+        empty = (np.empty((0, 2), np.float32), np.empty(0, np.int32))
+        if len(self._pts) < 4:
+            return None, 0, *empty
+        p0 = self._pts.reshape(-1, 1, 2)
+        p1, status, _err = cv2.calcOpticalFlowPyrLK(cur, nxt, p0, None, **self._lk_params)
+        if p1 is None:
+            return None, 0, *empty
+        ok = status.ravel() == 1
+        p0, p1, win = p0.reshape(-1, 2)[ok], p1.reshape(-1, 2)[ok], self._pt_win[ok]
+        vote = ~np.isin(win, list(excluded)) if excluded else np.ones(len(win), bool)
+        if excluded and vote.sum() < self.cfg.min_inliers:
+            vote[:] = True  # every window is covered: better the object's points than none
+        h = None
+        inliers = 0
+        if vote.sum() >= max(4, self.cfg.min_inliers):
+            h, inl = cv2.findHomography(
+                p0[vote], p1[vote], cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500
+            )
+            inliers = int(inl.sum()) if inl is not None else 0
+            if h is None or inliers < self.cfg.min_inliers or not _plausible(h):
+                h = None
+        # Keep points that stay inside their own window in frame t+1.
+        wins = np.asarray(self._windows, np.float32)[win]
+        inside = (
+            (p1[:, 0] >= wins[:, 0]) & (p1[:, 0] < wins[:, 2])
+            & (p1[:, 1] >= wins[:, 1]) & (p1[:, 1] < wins[:, 3])
+        )
+        return h, inliers, p1[inside].astype(np.float32), win[inside]
+
+    def _reseed(self, gray: np.ndarray) -> None:
+        """Alg. 1 lines 3–7: top up every window that has fewer than n points."""
+        c = self.cfg
+        if self.full_frame:
+            # Baseline: fresh corners over the whole frame every frame.
+            pts = cv2.goodFeaturesToTrack(
+                gray, FULL_FRAME_CORNERS, c.feature_quality, c.feature_min_distance_px
+            )
+            pts = np.empty((0, 2), np.float32) if pts is None else pts.reshape(-1, 2)
+            self._pts, self._pt_win = pts.astype(np.float32), np.zeros(len(pts), np.int32)
+            return
+        counts = np.bincount(self._pt_win, minlength=len(self._windows))
+        new_pts = [self._pts]
+        new_win = [self._pt_win]
+        keep = np.ones(len(self._pts), bool)
+        for i, (x0, y0, x1, y1) in enumerate(self._windows):
+            if counts[i] >= c.min_points_per_window:
+                continue
+            found = cv2.goodFeaturesToTrack(
+                gray[y0:y1, x0:x1], c.max_points_per_window, c.feature_quality,
+                c.feature_min_distance_px,
+            )
+            if found is None:
+                continue
+            keep &= self._pt_win != i  # replace the window's thin set with a fresh one
+            found = found.reshape(-1, 2) + np.array([x0, y0], np.float32)
+            new_pts.append(found.astype(np.float32))
+            new_win.append(np.full(len(found), i, np.int32))
+        new_pts[0], new_win[0] = self._pts[keep], self._pt_win[keep]
+        self._pts = np.concatenate(new_pts)
+        self._pt_win = np.concatenate(new_win)
+
+    # ------------------------------------------------------------------ differencing
+
+    def _difference(self, nxt: np.ndarray, h_cur_next: np.ndarray | None) -> tuple[np.ndarray | None, str]:
+        """Motion mask of frame t from frames t-1, t, t+1 (Alg. 1 lines 11–12)."""
+        cur = self._cur
+        assert cur is not None
+        if self._prev is None:
+            return None, "warmup"  # frame 1 has no previous frame
+        diffs = []
+        if self._h_prev_cur is not None:
+            diffs.append(_compensated_diff(self._prev, cur, self._h_prev_cur, inverse=False))
+        if h_cur_next is not None:
+            diffs.append(_compensated_diff(nxt, cur, h_cur_next, inverse=True))
+        if not diffs:
+            return None, "no_homography"
+        if len(diffs) == 1:
+            merged, status = diffs[0], "one_sided"
+        elif self.cfg.combine == "min":
+            merged, status = cv2.min(diffs[0], diffs[1]), "ok"
+        else:
+            merged, status = cv2.addWeighted(diffs[0], 0.5, diffs[1], 0.5, 0.0), "ok"
+        b = self.cfg.border_px
+        if b:
+            merged[:b, :] = 0
+            merged[-b:, :] = 0
+            merged[:, :b] = 0
+            merged[:, -b:] = 0
+        if self.cfg.median_ksize > 1:
+            merged = cv2.medianBlur(merged, self.cfg.median_ksize)
+        if self._dilate_kernel is not None:
+            merged = cv2.dilate(merged, self._dilate_kernel)
+        _, mask = cv2.threshold(merged, self.cfg.threshold, 255, cv2.THRESH_BINARY)
+        return mask, status
+
+
+def _compensated_diff(src: np.ndarray, cur: np.ndarray, h: np.ndarray, inverse: bool) -> np.ndarray:
+    """|cur - src warped onto cur|. Pixels that have no source stay equal to ``cur`` (diff 0).
+
+    ``h`` maps src px -> cur px; with ``inverse`` it maps cur px -> src px.
+    """
+    warped = cur.copy()
+    flags = cv2.INTER_LINEAR | (cv2.WARP_INVERSE_MAP if inverse else 0)
+    cv2.warpPerspective(
+        src, h, (cur.shape[1], cur.shape[0]), dst=warped, flags=flags,
+        borderMode=cv2.BORDER_TRANSPARENT,
+    )
+    return cv2.absdiff(cur, warped)
+
+
+def _plausible(h: np.ndarray) -> bool:
+    """Reject degenerate fits: consecutive frames differ by a small motion."""
+    det = float(np.linalg.det(h[:2, :2]))
+    return 0.5 < det < 2.0 and abs(h[2, 0]) < 1e-2 and abs(h[2, 1]) < 1e-2
+
+
+def _grey_histogram(gray: np.ndarray) -> np.ndarray:
+    """32-bin histogram of every 4th pixel: cheap and blind to camera pans, not to cuts."""
+    return cv2.calcHist([gray[::4, ::4]], [0], None, [32], [0, 256])

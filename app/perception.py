@@ -1,0 +1,102 @@
+"""Stages 1–3 chained: frames in, confirmed tracks out (one frame behind, see detection)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from app.config import PerceptionConfig
+from app.detection import MotionDetector
+from app.recognition import Blobs, Cluster, Recognizer
+from app.tracking import Tracker, TrackReport
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame. Arrays are owned by the frame (never an SDK buffer)."""
+
+    index: int  # 1-based frame number in its source
+    t_s: float  # capture time, s (source clock; monotonic for live cameras)
+    color: np.ndarray  # (H, W, 3) uint8 BGR, or (H, W) uint8 grey
+    depth: np.ndarray | None = None  # (H', W') uint16 mm, 0 = no data
+
+
+@dataclass
+class PerceptionResult:
+    """What perception knows about ``frame``."""
+
+    frame: Frame
+    status: str  # detector status: ok, one_sided, no_homography, scene_cut, warmup
+    mask: np.ndarray | None
+    blobs: Blobs | None
+    clusters: list[Cluster]
+    tracks: list[TrackReport]
+    homography: np.ndarray | None  # H_{t-1,t}
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def to_grey(image: np.ndarray) -> np.ndarray:
+    """8-bit grey from an 8-bit BGR, BGRA or grey image."""
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] == 1:
+        return image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    raise ValueError(f"unsupported image shape {image.shape}")
+
+
+class Perception:
+    """Detection → recognition → tracking.
+
+    ``push(frame_t+1)`` returns the result for frame t (None for the first frame).
+    """
+
+    def __init__(self, cfg: PerceptionConfig, full_frame_features: bool = False) -> None:
+        self.cfg = cfg
+        self.detector = MotionDetector(cfg.detection, full_frame=full_frame_features)
+        self.recognizer = Recognizer(cfg.recognition)
+        self.tracker = Tracker(cfg.tracking)
+        self._pending: Frame | None = None  # frame t, waiting for t+1
+
+    def reset(self) -> None:
+        self.detector.reset()
+        self.tracker.reset()
+        self._pending = None
+
+    def push(self, frame: Frame) -> PerceptionResult | None:
+        t0 = time.perf_counter()
+        grey = to_grey(frame.color)
+        exclude = [tr.box for tr in self.tracker.confirmed]
+        det = self.detector.push(grey, exclude)
+        t1 = time.perf_counter()
+        current, self._pending = self._pending, frame
+        if det.status == "scene_cut":
+            self.tracker.reset()
+        if current is None:
+            return None
+        clusters: list[Cluster] = []
+        blobs: Blobs | None = None
+        if det.mask is not None:
+            clusters, blobs = self.recognizer(det.mask)
+        t2 = time.perf_counter()
+        if det.status == "scene_cut":
+            tracks: list[TrackReport] = []
+        else:
+            tracks = self.tracker.step(
+                clusters if det.mask is not None else None, current.t_s, det.homography
+            )
+        t3 = time.perf_counter()
+        timings = {
+            "detection_ms": (t1 - t0) * 1e3,
+            "recognition_ms": (t2 - t1) * 1e3,
+            "tracking_ms": (t3 - t2) * 1e3,
+            "total_ms": (t3 - t0) * 1e3,
+        }
+        return PerceptionResult(current, det.status, det.mask, blobs, clusters, tracks,
+                                det.homography, timings)
