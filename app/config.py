@@ -65,9 +65,17 @@ class DetectionConfig:
     feature_min_distance_px: float = param(5.0, "min spacing of seeded points, px", gt=0)
     lk_window_px: int = param(21, "Lucas-Kanade search window side, px", ge=5, odd=True)
     lk_pyramid_levels: int = param(3, "Lucas-Kanade pyramid levels above the base", ge=0, le=6)
+    lk_search_px: int = param(
+        48, "how far beyond its window a point may move between frames, px", ge=8
+    )
     lk_max_iterations: int = param(20, "Lucas-Kanade iterations per level", ge=1)
     lk_min_eigen: float = param(
         1e-3, "drop LK points whose gradient matrix is weaker (featureless sky)", gt=0
+    )
+    min_texture: float = param(
+        1e-3,
+        "a window whose strongest corner (min eigenvalue) is weaker is featureless sky: not seeded",
+        gt=0,
     )
     ransac_reproj_px: float = param(2.0, "RANSAC inlier reprojection error, px", gt=0)
     min_inliers: int = param(

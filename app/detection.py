@@ -53,7 +53,7 @@ class DetectionResult:
     """The motion mask of one frame (the one *before* the frame just pushed)."""
 
     mask: np.ndarray | None  # uint8 (H, W), 255 = moving; None when the frame was skipped
-    status: str  # "ok", "one_sided", "no_homography", "warmup", "scene_cut"
+    status: str  # ok, one_sided, featureless, no_homography, warmup, scene_cut
     homography: np.ndarray | None  # H_{t-1,t}: previous frame px -> this frame px, or None
     inliers: int  # RANSAC inliers of the newest homography estimate
     excluded_windows: int  # border windows left out because a tracked object overlaps them
@@ -85,18 +85,22 @@ class MotionDetector:
         self._dilate_kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (k, k)) if k > 1 else None
         self._shape: tuple[int, int] | None = None
         self._windows: list[tuple[int, int, int, int]] = []
+        self._crops: list[tuple[int, int, int, int]] = []  # windows grown by lk_search_px
         self.reset()
 
     # ------------------------------------------------------------------ state
 
     def reset(self) -> None:
         """Forget all frames (after a scene cut, or at a new source)."""
-        self._prev: np.ndarray | None = None  # frame t-1
+        self._has_prev = False  # frame t has a predecessor
+        self._diff_cur: np.ndarray | None = None  # |I_t - W(I_{t-1})| in t's pixels
         self._cur: np.ndarray | None = None  # frame t
         self._h_prev_cur: np.ndarray | None = None  # H_{t-1,t}
         self._hist_cur: np.ndarray | None = None
         self._pts = np.empty((0, 2), np.float32)  # tracked points in frame t, px
         self._pt_win = np.empty(0, np.int32)  # window index of each point
+        self._textureless = np.zeros(len(self._windows), bool)  # per window, newest frame
+        self.featureless = False  # the newest H came from the blank-border fallback
 
     def _configure(self, shape: tuple[int, int]) -> None:
         h, w = shape
@@ -107,7 +111,11 @@ class MotionDetector:
             self._windows = [(0, 0, w, h)]
         else:
             self._windows = border_windows(w, h, c.window_px, c.window_count)
+        m = c.lk_search_px
+        self._crops = [(max(0, x0 - m), max(0, y0 - m), min(w, x1 + m), min(h, y1 + m))
+                       for x0, y0, x1, y1 in self._windows]
         self._shape = shape
+        self._textureless = np.zeros(len(self._windows), bool)
 
     # ------------------------------------------------------------------ main step
 
@@ -146,13 +154,16 @@ class MotionDetector:
         timings["flow_ms"] = (t1 - t0) * 1e3
 
         mask, status = self._difference(gray, h_cur_next)
+        if self.featureless and mask is not None:
+            status = "featureless"
         timings["difference_ms"] = (time.perf_counter() - t1) * 1e3
         if status == "no_homography":
             log.warning("no_h", "homography not estimated (%d inliers): frame skipped", inliers)
 
         result = DetectionResult(mask, status, self._h_prev_cur, inliers, len(excluded), timings)
         # Shift: t+1 becomes the current frame; H_{t,t+1} becomes next step's H_{t-1,t}.
-        self._prev, self._cur, self._hist_cur = self._cur, gray, hist
+        self._has_prev = True
+        self._cur, self._hist_cur = gray, hist
         self._h_prev_cur = h_cur_next
         self._pts, self._pt_win = next_pts, next_win
         self._reseed(gray)
@@ -181,14 +192,13 @@ class MotionDetector:
     ) -> tuple[np.ndarray | None, int, np.ndarray, np.ndarray]:
         """H_{t,t+1} from LK flow of the tracked points; also the surviving points in t+1."""
         empty = (np.empty((0, 2), np.float32), np.empty(0, np.int32))
+        self.featureless = False
         if len(self._pts) < 4:
+            if self._featureless_border(self._pt_win):
+                self.featureless = True
+                return np.eye(3), 0, self._pts[:0], self._pt_win[:0]
             return None, 0, *empty
-        p0 = self._pts.reshape(-1, 1, 2)
-        p1, status, _err = cv2.calcOpticalFlowPyrLK(cur, nxt, p0, None, **self._lk_params)
-        if p1 is None:
-            return None, 0, *empty
-        ok = status.ravel() == 1
-        p0, p1, win = p0.reshape(-1, 2)[ok], p1.reshape(-1, 2)[ok], self._pt_win[ok]
+        p0, p1, win = self._flow(cur, nxt)
         vote = ~np.isin(win, list(excluded)) if excluded else np.ones(len(win), bool)
         if excluded and vote.sum() < self.cfg.min_inliers:
             vote[:] = True  # every window is covered: better the object's points than none
@@ -201,6 +211,13 @@ class MotionDetector:
             inliers = int(inl.sum()) if inl is not None else 0
             if h is None or inliers < self.cfg.min_inliers or not _plausible(h):
                 h = None
+        elif self._featureless_border(win[vote]):
+            # Too few points because the border is blank sky, not because the points disagree:
+            # a misregistered blank sky differs from itself by nothing, so a translation by
+            # the median flow of what points there are (or none) is a safe model.
+            shift = np.median(p1[vote] - p0[vote], axis=0) if vote.sum() >= 3 else np.zeros(2)
+            h = np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]], float)
+            self.featureless = True
         # Keep points that stay inside their own window in frame t+1.
         wins = np.asarray(self._windows, np.float32)[win]
         inside = (
@@ -208,6 +225,38 @@ class MotionDetector:
             & (p1[:, 1] >= wins[:, 1]) & (p1[:, 1] < wins[:, 3])
         )
         return h, inliers, p1[inside].astype(np.float32), win[inside]
+
+    def _flow(self, cur: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """LK flow of the tracked points, t -> t+1; only the points LK could follow.
+
+        Each window is flowed inside its own crop (window + ``lk_search_px``): building
+        image pyramids of six small crops costs a fraction of two whole frames.
+        """
+        p0s, p1s, wins = [], [], []
+        for i, (x0, y0, x1, y1) in enumerate(self._crops):
+            sel = self._pt_win == i
+            if not sel.any():
+                continue
+            origin = np.array([x0, y0], np.float32)
+            q0 = (self._pts[sel] - origin).reshape(-1, 1, 2)
+            q1, status, _err = cv2.calcOpticalFlowPyrLK(
+                cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0, None, **self._lk_params
+            )
+            if q1 is None:
+                continue
+            ok = status.ravel() == 1
+            p0s.append(q0.reshape(-1, 2)[ok] + origin)
+            p1s.append(q1.reshape(-1, 2)[ok] + origin)
+            wins.append(np.full(int(ok.sum()), i, np.int32))
+        if not p0s:
+            return np.empty((0, 2), np.float32), np.empty((0, 2), np.float32), np.empty(0, np.int32)
+        return np.concatenate(p0s), np.concatenate(p1s), np.concatenate(wins)
+
+    def _featureless_border(self, point_windows: np.ndarray) -> bool:
+        """True when every window without points is blank (and at least one is)."""
+        empty = np.ones(len(self._windows), bool)
+        empty[np.unique(point_windows)] = False
+        return bool(empty.any() and self._textureless[empty].all())
 
     def _reseed(self, gray: np.ndarray) -> None:
         """Alg. 1 lines 3–7: top up every window that has fewer than n points."""
@@ -227,9 +276,12 @@ class MotionDetector:
         for i, (x0, y0, x1, y1) in enumerate(self._windows):
             if counts[i] >= c.min_points_per_window:
                 continue
+            patch = gray[y0:y1, x0:x1]
+            self._textureless[i] = float(cv2.cornerMinEigenVal(patch, 3).max()) < c.min_texture
+            if self._textureless[i]:
+                continue
             found = cv2.goodFeaturesToTrack(
-                gray[y0:y1, x0:x1], c.max_points_per_window, c.feature_quality,
-                c.feature_min_distance_px,
+                patch, c.max_points_per_window, c.feature_quality, c.feature_min_distance_px
             )
             if found is None:
                 continue
@@ -244,24 +296,36 @@ class MotionDetector:
     # ------------------------------------------------------------------ differencing
 
     def _difference(self, nxt: np.ndarray, h_cur_next: np.ndarray | None) -> tuple[np.ndarray | None, str]:
-        """Motion mask of frame t from frames t-1, t, t+1 (Alg. 1 lines 11–12)."""
+        """Motion mask of frame t from frames t-1, t, t+1 (Alg. 1 lines 11–12).
+
+        Each frame is warped once: |I_{t+1} - W(I_t)| is computed in t+1's pixels, kept as
+        next step's "previous" difference, and brought back into t's pixels for this step
+        by a nearest-neighbour warp of the difference image (a third of a bilinear warp of
+        the frame, and the median filter follows anyway).
+        """
         cur = self._cur
-        assert cur is not None
-        if self._prev is None:
-            return None, "warmup"  # frame 1 has no previous frame
-        diffs = []
-        if self._h_prev_cur is not None:
-            diffs.append(_compensated_diff(self._prev, cur, self._h_prev_cur, inverse=False))
+        if cur is None:
+            return None, "warmup"
+        prev_diff = self._diff_cur  # |I_t - W(I_{t-1})| in t's pixels, or None
+        self._diff_cur = None
+        next_diff = None
         if h_cur_next is not None:
-            diffs.append(_compensated_diff(nxt, cur, h_cur_next, inverse=True))
-        if not diffs:
+            self._diff_cur = _compensated_diff(cur, nxt, h_cur_next)
+            next_diff = cv2.warpPerspective(
+                self._diff_cur, h_cur_next, (cur.shape[1], cur.shape[0]),
+                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0,
+            )
+        if not self._has_prev:
+            return None, "warmup"  # the first frame has no previous frame
+        if prev_diff is None and next_diff is None:
             return None, "no_homography"
-        if len(diffs) == 1:
-            merged, status = diffs[0], "one_sided"
+        if prev_diff is None or next_diff is None:
+            merged, status = (prev_diff if next_diff is None else next_diff), "one_sided"
         elif self.cfg.combine == "min":
-            merged, status = cv2.min(diffs[0], diffs[1]), "ok"
+            merged, status = cv2.min(prev_diff, next_diff), "ok"
         else:
-            merged, status = cv2.addWeighted(diffs[0], 0.5, diffs[1], 0.5, 0.0), "ok"
+            merged, status = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0), "ok"
+        assert merged is not None
         b = self.cfg.border_px
         if b:
             merged[:b, :] = 0
@@ -276,18 +340,15 @@ class MotionDetector:
         return mask, status
 
 
-def _compensated_diff(src: np.ndarray, cur: np.ndarray, h: np.ndarray, inverse: bool) -> np.ndarray:
-    """|cur - src warped onto cur|. Pixels that have no source stay equal to ``cur`` (diff 0).
+def _compensated_diff(src: np.ndarray, dst: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """|dst - src warped onto dst|, in dst's pixels; ``h`` maps src px -> dst px.
 
-    ``h`` maps src px -> cur px; with ``inverse`` it maps cur px -> src px.
+    Pixels with no source keep dst's value, so their difference is 0, not a false edge.
     """
-    warped = cur.copy()
-    flags = cv2.INTER_LINEAR | (cv2.WARP_INVERSE_MAP if inverse else 0)
-    cv2.warpPerspective(
-        src, h, (cur.shape[1], cur.shape[0]), dst=warped, flags=flags,
-        borderMode=cv2.BORDER_TRANSPARENT,
-    )
-    return cv2.absdiff(cur, warped)
+    warped = dst.copy()
+    cv2.warpPerspective(src, h, (dst.shape[1], dst.shape[0]), dst=warped, flags=cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_TRANSPARENT)
+    return cv2.absdiff(dst, warped)
 
 
 def _plausible(h: np.ndarray) -> bool:

@@ -1,0 +1,120 @@
+"""``midair bench``: time stages 1–3 on 640×480 frames with one OpenCV thread.
+
+Runs the border-window detector and, in the same run on the same frames, the full-frame
+variant (corners tracked over the whole frame), and prints per-stage median/p95 and the
+ratio. ``--soak N`` also replays N frames and reports resident memory along the way.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+from app.config import Config
+from app.perception import Frame, Perception
+from app.synthetic import SyntheticScene, render
+
+STAGES = ("detection_ms", "recognition_ms", "tracking_ms", "total_ms")
+
+
+def _frames(n: int, seed: int) -> list[Frame]:
+    scene = SyntheticScene(width=640, height=480, frames=n, seed=seed)
+    return [f for f, _ in render(scene)]
+
+
+def time_variant(frames: list[Frame], cfg: Config, full_frame: bool, repeats: int) -> dict[str, np.ndarray]:
+    out: dict[str, list[float]] = {k: [] for k in STAGES}
+    for _ in range(repeats):
+        p = Perception(cfg.perception, full_frame_features=full_frame)
+        for f in frames:
+            r = p.push(f)
+            if r is None or r.status in ("warmup", "scene_cut"):
+                continue
+            for k in STAGES:
+                out[k].append(r.timings_ms[k])
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def rss_mib() -> float:
+    """Current resident set size, MiB (Linux /proc; falls back to the peak)."""
+    try:
+        with open("/proc/self/statm") as fh:
+            pages = int(fh.read().split()[1])
+        return pages * resource.getpagesize() / 2**20
+    except OSError:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def soak(frames: list[Frame], cfg: Config, total: int) -> list[tuple[int, float]]:
+    """Replay ``total`` frames (the clip looped, timestamps continuing); RSS at 10 points."""
+    p = Perception(cfg.perception)
+    marks: list[tuple[int, float]] = []
+    step = max(1, total // 10)
+    dt = frames[1].t_s - frames[0].t_s
+    for i in range(total):
+        src = frames[i % len(frames)]
+        p.push(Frame(i + 1, i * dt, src.color, src.depth))
+        if (i + 1) % step == 0:
+            marks.append((i + 1, rss_mib()))
+    return marks
+
+
+def run_bench(cfg: Config, frames: int = 300, repeats: int = 2, seed: int = 1,
+              soak_frames: int = 0) -> dict[str, object]:
+    cv2.setNumThreads(1)
+    clip = _frames(frames, seed)
+    # warm-up (first calls allocate and JIT-free paths settle)
+    time_variant(clip[:20], cfg, False, 1)
+    win = time_variant(clip, cfg, False, repeats)
+    full = time_variant(clip, replace(cfg), True, repeats)
+    result: dict[str, object] = {
+        "frame_size": "640x480",
+        "opencv_threads": cv2.getNumThreads(),
+        "frames_timed": int(len(win["total_ms"])),
+        "windows": {k.removesuffix("_ms"): _stats(v) for k, v in win.items()},
+        "full_frame": {k.removesuffix("_ms"): _stats(v) for k, v in full.items()},
+        "median_ms_per_frame": round(float(np.median(win["total_ms"])), 3),
+        "p95_ms_per_frame": round(float(np.percentile(win["total_ms"], 95)), 3),
+        "baseline_median_ms_per_frame": round(float(np.median(full["total_ms"])), 3),
+    }
+    result["speedup_vs_full_frame"] = round(
+        float(result["baseline_median_ms_per_frame"]) / float(result["median_ms_per_frame"]), 2  # type: ignore[arg-type]
+    )
+    if soak_frames:
+        marks = soak(clip, cfg, soak_frames)
+        first = marks[0][1]
+        result["soak"] = {
+            "frames": soak_frames,
+            "rss_mib": [[n, round(m, 1)] for n, m in marks],
+            "growth_mib_after_first_tenth": round(marks[-1][1] - first, 1),
+        }
+    return result
+
+
+def _stats(v: np.ndarray) -> dict[str, float]:
+    return {"median_ms": round(float(np.median(v)), 3), "p95_ms": round(float(np.percentile(v, 95)), 3)}
+
+
+def format_bench(r: dict[str, object]) -> str:
+    win, full = r["windows"], r["full_frame"]
+    assert isinstance(win, dict) and isinstance(full, dict)
+    lines = [
+        f"stages 1-3 on {r['frame_size']} synthetic frames, {r['opencv_threads']} OpenCV thread, "
+        f"{r['frames_timed']} frames per variant",
+        f"{'stage':<12} {'windows median/p95 ms':>24} {'full-frame median/p95 ms':>28}",
+    ]
+    for k in ("detection", "recognition", "tracking", "total"):
+        a, b = win[k], full[k]
+        lines.append(f"{k:<12} {a['median_ms']:>11.3f} / {a['p95_ms']:<10.3f} "
+                     f"{b['median_ms']:>13.3f} / {b['p95_ms']:<10.3f}")
+    lines.append(f"full-frame / windows (median total): {r['speedup_vs_full_frame']}x")
+    soak_r = r.get("soak")
+    if isinstance(soak_r, dict):
+        lines.append(f"soak {soak_r['frames']} frames: RSS MiB at checkpoints "
+                     f"{[m for _, m in soak_r['rss_mib']]}; growth after the first tenth "
+                     f"{soak_r['growth_mib_after_first_tenth']} MiB")
+    return "\n".join(lines)

@@ -1,0 +1,144 @@
+"""A synthetic flight: a moving camera over a textured world with small flying objects.
+
+Used as the embedded default (no camera needed), by the benchmark and by tests that need
+frames with exact ground truth. Deterministic for a given seed.
+
+The world is a large texture (sky gradient with soft clouds above a textured treeline
+and ground). The camera pans, tilts and rolls slowly over it: frame t is the world seen
+through a homography. Objects are dark ellipses with their own image motion, drawn after
+the warp, so their motion relative to the background is known exactly.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from app.perception import Frame
+
+
+@dataclass(frozen=True)
+class SyntheticObject:
+    object_id: int
+    start_xy: tuple[float, float]  # image px at frame 1
+    velocity: tuple[float, float]  # image px/frame, relative to the image
+    size_px: float  # ellipse major axis at frame 1, px
+    growth: float = 1.0  # size multiplier per frame (an approaching object grows)
+    start_m: float = 30.0  # distance at frame 1, m (for the depth frame)
+    closing_mps: float = 0.0  # how fast the distance shrinks, m/s
+    brightness: int = 40  # grey level of the object
+
+
+@dataclass(frozen=True)
+class SyntheticScene:
+    width: int = 640
+    height: int = 480
+    fps: float = 30.0
+    frames: int = 150
+    seed: int = 1
+    pan_px_per_frame: float = 2.5  # camera pan speed in the image, px/frame
+    noise_std: float = 1.5  # sensor noise, grey levels
+    objects: tuple[SyntheticObject, ...] = (
+        SyntheticObject(1, (120.0, 150.0), (3.0, 0.8), 18.0),
+        SyntheticObject(2, (520.0, 300.0), (-2.2, -1.0), 26.0, growth=1.004,
+                        start_m=20.0, closing_mps=3.0),
+    )
+
+
+def _world(scene: SyntheticScene, rng: np.random.Generator) -> np.ndarray:
+    """Grey world texture, about 2x the frame, horizon 60 % down."""
+    h, w = scene.height * 2, scene.width * 3
+    y = np.linspace(0, 1, h)[:, None]
+    sky = 200 - 40 * y + np.zeros((h, w))
+    clouds = cv2.GaussianBlur(rng.normal(0, 1, (h // 8, w // 8)), (0, 0), 3)
+    clouds = cv2.resize(clouds, (w, h), interpolation=cv2.INTER_CUBIC)
+    sky += 25 * clouds / (np.abs(clouds).max() + 1e-9)
+    horizon = int(h * 0.6)
+    ground = rng.normal(0, 1, (h - horizon, w))
+    ground = 90 + 30 * cv2.GaussianBlur(ground, (0, 0), 1.2) / 0.3
+    # a ragged treeline
+    tops = horizon - (20 + 15 * np.abs(np.sin(np.arange(w) / 17.0)) + rng.integers(0, 10, w))
+    img = sky
+    img[horizon:] = ground
+    cols = np.arange(w)
+    for x in cols[::1]:
+        t = int(tops[x])
+        img[t:horizon, x] = 70 + rng.normal(0, 12, horizon - t)
+    # the lens's blur: real frames carry no detail finer than about a pixel
+    return cv2.GaussianBlur(np.clip(img, 0, 255).astype(np.uint8), (0, 0), 1.0)
+
+
+def camera_homography(scene: SyntheticScene, k: int) -> np.ndarray:
+    """World px -> image px of frame k (0-based): a slow pan, tilt wobble and roll."""
+    tx = 0.5 * scene.width + scene.pan_px_per_frame * k
+    ty = 0.55 * scene.height + 12 * np.sin(k / 25.0)
+    roll = 0.01 * np.sin(k / 40.0)
+    zoom = 1.0 + 0.02 * np.sin(k / 60.0)
+    c, s = np.cos(roll) * zoom, np.sin(roll) * zoom
+    # image = R * (world - (tx, ty))
+    return np.array([[c, -s, -(c * tx - s * ty)], [s, c, -(s * tx + c * ty)], [0, 0, 1]])
+
+
+def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float, float, float, float]]]]:
+    """Frames (colour BGR + depth mm) and their ground-truth boxes ``(id, x, y, w, h)``."""
+    rng = np.random.default_rng(scene.seed)
+    world = _world(scene, rng)
+    size = (scene.width, scene.height)
+    for k in range(scene.frames):
+        grey = cv2.warpPerspective(world, camera_homography(scene, k), size, flags=cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_REFLECT)
+        depth = np.zeros((scene.height, scene.width), np.uint16)  # sky and far ground: no data
+        truth = []
+        for ob in scene.objects:
+            x = ob.start_xy[0] + ob.velocity[0] * k
+            y = ob.start_xy[1] + ob.velocity[1] * k
+            d = ob.size_px * ob.growth**k
+            a, b = d / 2, d / 3.2
+            if not (-d < x < scene.width + d and -d < y < scene.height + d):
+                continue
+            mask = np.zeros_like(grey)
+            cv2.ellipse(mask, ((x, y), (2 * a, 2 * b), 15.0), 255, -1, cv2.LINE_AA)
+            alpha = mask.astype(np.float32) / 255.0
+            grey = (grey * (1 - alpha) + ob.brightness * alpha).astype(np.uint8)
+            dist_m = max(0.3, ob.start_m - ob.closing_mps * k / scene.fps)
+            depth[mask > 127] = int(dist_m * 1000)
+            x0, y0, x1, y1 = max(0, x - a), max(0, y - a), min(scene.width, x + a), min(scene.height, y + a)
+            if x1 > x0 and y1 > y0:
+                truth.append((ob.object_id, x0, y0, x1 - x0, y1 - y0))
+        noisy = grey.astype(np.float32) + rng.normal(0, scene.noise_std, grey.shape)
+        colour = cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+        # a tint so the colour frame is not grey: sky bluish
+        colour[:, :, 0] = cv2.add(colour[:, :, 0], 25)
+        yield Frame(k + 1, k / scene.fps, colour, depth), truth
+
+
+def write_recording(scene: SyntheticScene, folder: Path) -> Path:
+    """Write the scene as a recording folder (``color.mp4``, ``depth/``, ``frames.csv``)
+    plus its ground truth ``gt.csv``. Returns the folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "depth").mkdir(exist_ok=True)
+    writer = cv2.VideoWriter(str(folder / "color.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+                             scene.fps, (scene.width, scene.height))
+    if not writer.isOpened():
+        raise RuntimeError(f"cannot write {folder / 'color.mp4'}")
+    try:
+        with (folder / "frames.csv").open("w", newline="") as ft, \
+                (folder / "gt.csv").open("w", newline="") as fg:
+            wt, wg = csv.writer(ft), csv.writer(fg)
+            wt.writerow(["frame", "t_s"])
+            wg.writerow(["frame", "id", "x", "y", "w", "h"])
+            for frame, truth in render(scene):
+                writer.write(frame.color)
+                if frame.depth is not None:
+                    cv2.imwrite(str(folder / "depth" / f"{frame.index:06d}.png"), frame.depth)
+                wt.writerow([frame.index, f"{frame.t_s:.6f}"])
+                for oid, x, y, w, h in truth:
+                    wg.writerow([frame.index, oid, f"{x:.2f}", f"{y:.2f}", f"{w:.2f}", f"{h:.2f}"])
+    finally:
+        writer.release()
+    return folder
