@@ -47,7 +47,7 @@ def param(
 
 @dataclass(frozen=True)
 class DetectionConfig:
-    """Stage 1: camera-motion compensation and frame differencing (paper Alg. 1, §3-F)."""
+    """Stage 1 — camera-motion compensation and frame differencing (paper Alg. 1, §3-F)."""
 
     window_px: int = param(70, "side of each square border window for LK flow, px (paper: 70)", ge=16)
     window_count: int = param(
@@ -89,8 +89,13 @@ class DetectionConfig:
     median_ksize: int = param(5, "median filter aperture, px", ge=1, le=255, odd=True)
     dilate_ksize: int = param(5, "dilation kernel side, px (1 = none)", ge=1, odd=True)
     threshold: int = param(18, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
+    max_mask_frac: float = param(
+        0.15,
+        "a mask covering more of the frame than this means a bad warp: the frame is skipped (0-1)",
+        gt=0, le=1,
+    )
     border_px: int = param(
-        4, "ignore this band along the edge of the warped frames' common area, px", ge=0
+        4, "ignore this band along the frame edges, px", ge=0
     )
     object_margin_px: int = param(
         10, "grow tracked objects' boxes by this before masking border windows, px", ge=0
@@ -105,7 +110,7 @@ class DetectionConfig:
 
 @dataclass(frozen=True)
 class RecognitionConfig:
-    """Stage 2: area-weighted DBSCAN over the blobs of the motion mask (paper Alg. 2, §4-A)."""
+    """Stage 2 — area-weighted DBSCAN over the blobs of the motion mask (paper Alg. 2, §4-A)."""
 
     min_blob_px: int = param(3, "blobs smaller than this are ignored outright, px²", ge=1)
     area_px: int = param(
@@ -124,7 +129,7 @@ class RecognitionConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Stage 3: association, candidate/confirmed/lost life cycle, Kalman filter (Alg. 3, §4-B/C)."""
+    """Stage 3 — association, candidate/confirmed/lost life cycle, Kalman filter (Alg. 3, §4-B/C)."""
 
     dist_px: float = param(
         50.0, "a cluster farther than this from a track's prediction is not it (distThresh), px", gt=0
@@ -147,6 +152,8 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class PerceptionConfig:
+    """Perception: stages 1-3 of the paper."""
+
     detection: DetectionConfig = field(default_factory=DetectionConfig)
     recognition: RecognitionConfig = field(default_factory=RecognitionConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
@@ -154,6 +161,8 @@ class PerceptionConfig:
 
 @dataclass(frozen=True)
 class Config:
+    """midair configuration."""
+
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
 
 
@@ -271,3 +280,28 @@ def describe(cfg: Any = None, prefix: str = "") -> list[tuple[str, Any, str]]:
         else:
             rows.append((f"{prefix}{f.name}", value, f.metadata.get("doc", "")))
     return rows
+
+
+def to_yaml(cfg: Any = None) -> str:
+    """The configuration as commented YAML that :func:`load_config` reads back."""
+    cfg = Config() if cfg is None else cfg
+    lines: list[str] = []
+
+    def emit(obj: Any, indent: int) -> None:
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            pad = "  " * indent
+            if dataclasses.is_dataclass(value):
+                doc = (type(value).__doc__ or "").strip().splitlines()
+                if doc:
+                    lines.append(f"{pad}# {doc[0]}")
+                lines.append(f"{pad}{f.name}:")
+                emit(value, indent + 1)
+            else:
+                text = yaml.safe_dump(value, default_flow_style=True).strip()
+                text = text.removesuffix("...").strip()
+                lines.append(f"{pad}{f.name}: {text}  # {f.metadata.get('doc', '')}")
+
+    emit(cfg, 0)
+    return "\n".join(lines) + "\n"
+

@@ -53,7 +53,7 @@ class DetectionResult:
     """The motion mask of one frame (the one *before* the frame just pushed)."""
 
     mask: np.ndarray | None  # uint8 (H, W), 255 = moving; None when the frame was skipped
-    status: str  # ok, one_sided, featureless, no_homography, warmup, scene_cut
+    status: str  # ok, one_sided, featureless, no_homography, bad_warp, warmup, scene_cut
     homography: np.ndarray | None  # H_{t-1,t}: previous frame px -> this frame px, or None
     inliers: int  # RANSAC inliers of the newest homography estimate
     excluded_windows: int  # border windows left out because a tracked object overlaps them
@@ -337,6 +337,11 @@ class MotionDetector:
         if self._dilate_kernel is not None:
             merged = cv2.dilate(merged, self._dilate_kernel)
         _, mask = cv2.threshold(merged, self.cfg.threshold, 255, cv2.THRESH_BINARY)
+        if cv2.countNonZero(mask) > self.cfg.max_mask_frac * mask.size:
+            # Real objects are small; a mask this large is the background failing to register.
+            log.warning("bad_warp", "motion mask covers over %.0f %% of the frame: frame skipped",
+                        100 * self.cfg.max_mask_frac)
+            return None, "bad_warp"
         return mask, status
 
 

@@ -1,0 +1,177 @@
+"""The ``midair`` command line.
+
+Exit codes: 0 success; 1 an unexpected error (a bug: traceback shown); 2 a bad command
+line or configuration; 3 unusable input data; 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from app import __version__
+from app.config import Config, load_config, to_yaml
+from app.errors import UserError
+
+log = logging.getLogger("midair")
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="midair",
+        description="See a flying object coming with the forward camera and get out of its way.",
+    )
+    p.add_argument("--version", action="version", version=f"midair {__version__}")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def with_config(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--config", type=Path, help="YAML configuration (default: built-in, "
+                        "identical to the repository's config.yaml)")
+
+    d = sub.add_parser("demo", help="generate a synthetic flight, replay it, write the annotated video")
+    d.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
+    d.add_argument("--frames", type=int, default=240, help="length of the synthetic flight, frames")
+    d.add_argument("--seed", type=int, default=1)
+    with_config(d)
+
+    r = sub.add_parser("replay", help="run perception over a video, image folder or recording folder")
+    r.add_argument("source", type=Path, help="video file, folder of images, or recording folder")
+    r.add_argument("--out", type=Path, required=True, help="output folder")
+    r.add_argument("--no-video", action="store_true", help="do not write annotated.mp4")
+    r.add_argument("--fps", type=float, help="frame rate of an image folder (default 30)")
+    with_config(r)
+
+    e = sub.add_parser("evaluate", help="score replay against ground truth (one clip or a data folder)")
+    e.add_argument("path", type=Path, help="a clip (video or image folder) or a folder of clips, "
+                   "e.g. ../shared/data")
+    e.add_argument("--gt", type=Path, help="ground truth CSV (frame,id,x,y,w,h) for a single clip")
+    e.add_argument("--out", type=Path, help="also write evaluation.md and evaluation.csv here")
+    e.add_argument("--only", help="comma-separated substrings: keep clips whose name or group has one")
+    e.add_argument("--workers", type=int, help="processes (default: all cores)")
+    with_config(e)
+
+    b = sub.add_parser("bench", help="time stages 1-3 on 640x480 frames, windows vs full-frame features")
+    b.add_argument("--frames", type=int, default=300)
+    b.add_argument("--repeats", type=int, default=2)
+    b.add_argument("--soak", type=int, default=0, metavar="N",
+                   help="also replay N frames and report memory (e.g. 10000)")
+    b.add_argument("--json", action="store_true", help="last line: one JSON object")
+    with_config(b)
+
+    c = sub.add_parser("config", help="print the configuration as commented YAML "
+                       "(midair config > my.yaml to start tuning)")
+    with_config(c)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
+    try:
+        cfg = load_config(args.config)
+        return _COMMANDS[args.command](args, cfg)
+    except UserError as exc:
+        print(f"midair: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("midair: interrupted", file=sys.stderr)
+        return 130
+
+
+def _cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
+    from app.replay import ProgressBar, run_replay
+    from app.sources import open_source
+
+    source = open_source(args.source, fps=args.fps)
+    bar = ProgressBar(f"replay {source.name}")
+    try:
+        stats = run_replay(source, cfg, args.out, video=not args.no_video, progress=bar)
+    finally:
+        bar.close()
+    summary = stats.summary(source)
+    print(json.dumps(summary, indent=2))
+    print(f"wrote {args.out / 'tracks.csv'}, {args.out / 'summary.json'}"
+          + ("" if args.no_video else f", {args.out / 'annotated.mp4'}"))
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
+    from app.evaluate import read_boxes, score
+    from app.replay import ProgressBar, run_replay
+    from app.sources import open_source
+    from app.synthetic import SyntheticScene, write_recording
+
+    if args.frames < 10:
+        raise UserError(f"--frames {args.frames}: must be at least 10")
+    rec = write_recording(SyntheticScene(frames=args.frames, seed=args.seed), args.out / "recording")
+    source = open_source(rec)
+    bar = ProgressBar("demo")
+    try:
+        stats = run_replay(source, cfg, args.out, video=True, progress=bar)
+    finally:
+        bar.close()
+    s = score(read_boxes(rec / "gt.csv"), stats.track_rows, len(source))
+    summary = stats.summary(source)
+    total = summary["stages"]["total"]  # type: ignore[index]
+    print(f"synthetic flight: {len(source)} frames at {source.fps:g} fps, recording in {rec}")
+    print(f"perception: {summary['confirmed_ids']} confirmed objects, "
+          f"median {total['median_ms']} ms/frame, {summary['processing_fps']} frames/s")
+    print(f"against the truth: recall {s['recall']:.2f}, precision {s['precision']:.2f}, "
+          f"MOTA {s['mota']:.2f}, IDF1 {s['idf1']:.2f}")
+    print(f"annotated video: {args.out / 'annotated.mp4'}  tracks: {args.out / 'tracks.csv'}")
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
+    from app.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
+
+    clips = find_clips(args.path, args.gt)
+    if args.only:
+        keys = [k.strip() for k in args.only.split(",") if k.strip()]
+        clips = [c for c in clips if any(k in c.name or k in c.group for k in keys)]
+        if not clips:
+            raise UserError(f"--only {args.only}: no clip matches")
+    scores = evaluate_all(clips, cfg, args.workers)
+    sums = totals(scores)
+    print(format_tables(scores, sums))
+    if args.out:
+        write_reports(args.out, scores, sums)
+        print(f"wrote {args.out / 'evaluation.md'} and {args.out / 'evaluation.csv'}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
+    from app.bench import format_bench, run_bench
+
+    if args.frames < 30:
+        raise UserError(f"--frames {args.frames}: must be at least 30")
+    result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak)
+    print(format_bench(result))
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+def _cmd_config(args: argparse.Namespace, cfg: Config) -> int:
+    sys.stdout.write(to_yaml(cfg))
+    return 0
+
+
+_COMMANDS = {
+    "replay": _cmd_replay,
+    "demo": _cmd_demo,
+    "evaluate": _cmd_evaluate,
+    "bench": _cmd_bench,
+    "config": _cmd_config,
+}
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,112 @@
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from app.config import DetectionConfig
+from app.detection import MotionDetector, border_windows
+from app.errors import SourceError
+from tests.conftest import textured
+
+
+def _shift(img: np.ndarray, h: np.ndarray) -> np.ndarray:
+    return cv2.warpPerspective(img, h, (img.shape[1], img.shape[0]), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REFLECT)
+
+
+def _camera(k: int) -> np.ndarray:
+    """A known camera motion: image of frame k = base warped by this (pan + slight roll)."""
+    a = 0.002 * k
+    return np.array([[np.cos(a), -np.sin(a), 2.0 * k], [np.sin(a), np.cos(a), 1.2 * k], [0, 0, 1]])
+
+
+def test_border_windows_follow_the_paper_layout() -> None:
+    wins = border_windows(640, 480, 70, 6)
+    assert wins[:4] == [(0, 0, 70, 70), (570, 0, 640, 70), (0, 410, 70, 480), (570, 410, 640, 480)]
+    assert wins[4:] == [(285, 0, 355, 70), (285, 410, 355, 480)]
+    assert len(border_windows(640, 480, 70, 8)) == 8
+
+
+def test_frames_smaller_than_the_windows_are_a_clear_error() -> None:
+    det = MotionDetector(DetectionConfig())
+    with pytest.raises(SourceError, match=r"frame 160x120 is too small .*window_px = 70"):
+        det.push(np.zeros((120, 160), np.uint8))
+
+
+def test_known_homography_is_recovered() -> None:
+    base = textured()
+    det = MotionDetector(DetectionConfig())
+    results = [det.push(_shift(base, _camera(k))) for k in range(4)]
+    h = results[-1].homography  # H_{1,2}: frame 1 px -> frame 2 px
+    assert h is not None and results[-1].status == "ok"
+    truth = _camera(2) @ np.linalg.inv(_camera(1))
+    pts = np.array([[[50.0, 50.0]], [[600.0, 60.0]], [[320.0, 240.0]], [[40.0, 450.0]]])
+    err = cv2.perspectiveTransform(pts, h) - cv2.perspectiveTransform(pts, truth)
+    assert np.abs(err).max() < 0.3  # px
+
+
+def test_moving_object_is_in_the_mask_and_background_is_not() -> None:
+    base = textured(seed=1)
+    det = MotionDetector(DetectionConfig())
+    masks = []
+    for k in range(5):
+        img = _shift(base, _camera(k))
+        cv2.circle(img, (300 + 6 * k, 200 + 3 * k), 9, 20, -1)  # its own motion
+        masks.append(det.push(img).mask)
+    mask = masks[-1]  # mask of frame 3
+    assert mask is not None
+    cx, cy = 300 + 6 * 3, 200 + 3 * 3
+    ys, xs = np.nonzero(mask[cy - 25:cy + 26, cx - 25:cx + 26])
+    assert len(xs) > 150  # the disc has 250 px; a uniform disc differs at its rim
+    assert abs(xs.mean() - 25) < 3 and abs(ys.mean() - 25) < 3  # centred on frame 3's disc
+    far = mask.copy()
+    cv2.circle(far, (cx, cy), 40, 0, -1)
+    assert (far > 0).mean() < 0.002  # background: at most 0.2 % of pixels
+
+
+def test_a_tracked_object_in_a_window_does_not_vote() -> None:
+    base = textured(seed=2)
+    det = MotionDetector(DetectionConfig())
+    det.push(_shift(base, _camera(0)))
+    r = det.push(_shift(base, _camera(1)), exclude=[(10.0, 10.0, 30.0, 30.0)])
+    assert r.excluded_windows == 1
+
+
+def test_featureless_sky_falls_back_to_a_safe_model_and_sees_the_object() -> None:
+    sky = np.full((480, 640), 180, np.uint8)
+    det = MotionDetector(DetectionConfig())
+    out = []
+    for k in range(5):
+        img = sky.copy()
+        cv2.circle(img, (320 + 5 * k, 240), 8, 60, -1)
+        out.append(det.push(img))
+    assert out[-1].status == "featureless"
+    mask = out[-1].mask  # frame 3: the disc is at x = 335
+    assert mask is not None
+    assert mask[230:251, 320:351].any()
+    mask[220:261, 300:371] = 0
+    assert not mask.any()  # the blank sky itself never differs
+
+
+def test_frames_that_do_not_register_are_skipped_not_diffed() -> None:
+    """Unrelated frames: either RANSAC finds no consistent motion or the warp leaves a
+    mask far larger than any object; in both cases no mask comes out."""
+    det = MotionDetector(DetectionConfig())
+    a, b = textured(seed=3), textured(seed=4)  # unrelated frames with the same histogram shape
+    r1 = det.push(a)
+    r2 = det.push(b)
+    r3 = det.push(a)
+    assert r1.status == "warmup"
+    assert r2.mask is None and r3.mask is None
+    assert r2.status == "warmup" and r3.status in ("no_homography", "bad_warp")
+
+
+def test_scene_cut_resets_instead_of_flagging_the_whole_frame() -> None:
+    det = MotionDetector(DetectionConfig())
+    for k in range(3):
+        det.push(_shift(textured(seed=5), _camera(k)))
+    dark = (textured(seed=6) // 4).astype(np.uint8)
+    r = det.push(dark)
+    assert r.status == "scene_cut" and r.mask is None
+    assert det.push(dark).status == "warmup"
