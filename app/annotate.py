@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from app.decision import Command, DecisionMaker, ObjectState
 from app.perception import PerceptionResult
 
 MASK_COLOUR = (0, 0, 255)  # BGR: red outline of the motion mask
@@ -12,10 +13,17 @@ CLUSTER_COLOUR = (0, 220, 255)  # yellow: recognised clusters
 TRACK_COLOUR = (60, 220, 60)  # green: confirmed tracks
 LOST_COLOUR = (160, 160, 160)  # grey: confirmed but coasting
 TEXT_COLOUR = (255, 255, 255)
+WINDOW_COLOUR = (255, 160, 0)  # blue-ish: the safe window
+ALERT_COLOUR = (0, 0, 255)  # red: the evasion arrow
 
 
-def annotate(result: PerceptionResult, extra_lines: tuple[str, ...] = ()) -> np.ndarray:
-    """The frame with the mask outline, clusters, tracks with IDs and Kalman trails."""
+def annotate(
+    result: PerceptionResult,
+    extra_lines: tuple[str, ...] = (),
+    decision: tuple[Command | None, list[ObjectState] | None, DecisionMaker] | None = None,
+) -> np.ndarray:
+    """The frame with the mask outline, clusters, tracks with IDs and Kalman trails; with a
+    decision, also the safe window, each object's distance and the command."""
     img = result.frame.color
     out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
     if result.mask is not None:
@@ -33,10 +41,46 @@ def annotate(result: PerceptionResult, extra_lines: tuple[str, ...] = ()) -> np.
         cv2.rectangle(out, (x, y), (x + w, y + h), colour, 2)
         cv2.putText(out, f"#{t.track_id}", (x, max(12, y - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
                     colour, 1, cv2.LINE_AA)
-    lines = (f"frame {result.frame.index}  {result.status}  tracks {len(result.tracks)}",
-             *extra_lines)
+    lines = [f"frame {result.frame.index}  {result.status}  tracks {len(result.tracks)}",
+             *extra_lines]
+    if decision is not None:
+        lines.append(_draw_decision(out, result, *decision))
     for i, line in enumerate(lines):
         org = (8, 20 + 18 * i)
         cv2.putText(out, line, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, line, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5, TEXT_COLOUR, 1, cv2.LINE_AA)
     return out
+
+
+def _draw_decision(out: np.ndarray, result: PerceptionResult, command: Command | None,
+                   objects: list[ObjectState] | None, decider: DecisionMaker) -> str:
+    """Safe window (a circle of radius R_safe at the nearest object's distance, or at the
+    avoidance distance), distances per track, and the command line."""
+    cam = decider.camera.color
+    objects = objects or []
+    by_id = {o.track_id: o for o in objects}
+    z_ref = min((o.z_m for o in objects if o.fresh), default=decider.avoid_m)
+    z_ref = max(z_ref, 0.3)
+    radius = int(round(cam.fx * decider.cfg.safe_window_m / z_ref))
+    centre = (int(round(cam.ppx)), int(round(cam.ppy)))
+    cv2.circle(out, centre, radius, WINDOW_COLOUR, 1, cv2.LINE_AA)
+    cv2.putText(out, f"safe window @ {z_ref:.1f} m", (centre[0] - 60, max(12, centre[1] - radius - 6)),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, WINDOW_COLOUR, 1, cv2.LINE_AA)
+    for t in result.tracks:
+        o = by_id.get(t.track_id)
+        if o is None:
+            continue
+        x, y, w, h = (int(round(v)) for v in t.box)
+        label = f"{o.z_m:.1f} m" + ("" if o.fresh else " (stale)")
+        if o.ttc_s is not None:
+            label += f" ttc {o.ttc_s:.1f}s"
+        cv2.putText(out, label, (x, y + h + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, TRACK_COLOUR, 1,
+                    cv2.LINE_AA)
+    if command is None or command.action == "none":
+        return "decision: none"
+    if command.action == "evade":
+        # arrow from the centre along the commanded (right, down) velocity
+        k = 40 / max(command.speed_mps, 1e-6)
+        tip = (int(centre[0] + k * command.right_mps), int(centre[1] + k * command.down_mps))
+        cv2.arrowedLine(out, centre, tip, ALERT_COLOUR, 3, cv2.LINE_AA, tipLength=0.3)
+    return f"decision: {command.action} - {command.reason}"

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from app import __version__
-from app.config import Config, load_config, to_yaml
+from app.config import Config, explain, load_config, to_yaml
 from app.errors import UserError
 
 log = logging.getLogger("midair")
@@ -43,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--no-video", action="store_true", help="do not write annotated.mp4")
     r.add_argument("--fps", type=float, help="frame rate of an image folder (default 30)")
+    r.add_argument("--altitude", type=float, metavar="M",
+                   help="altitude above home assumed for the decision, m (default: unknown, "
+                   "so no downward escape)")
     with_config(r)
 
     e = sub.add_parser("evaluate", help="score replay against ground truth (one clip or a data folder)")
@@ -64,6 +67,8 @@ def _parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("config", help="print the configuration as commented YAML "
                        "(midair config > my.yaml to start tuning)")
+    c.add_argument("--explain", action="store_true",
+                   help="show how the decision thresholds follow from each other (eq. 4.3)")
     with_config(c)
     return p
 
@@ -71,10 +76,11 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
+        level=logging.WARNING,  # libraries (motmetrics logs timings at INFO on the root logger)
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
     try:
         cfg = load_config(args.config)
         return _COMMANDS[args.command](args, cfg)
@@ -93,12 +99,14 @@ def _cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
     source = open_source(args.source, fps=args.fps)
     bar = ProgressBar(f"replay {source.name}")
     try:
-        stats = run_replay(source, cfg, args.out, video=not args.no_video, progress=bar)
+        stats = run_replay(source, cfg, args.out, video=not args.no_video, progress=bar,
+                           altitude_m=args.altitude)
     finally:
         bar.close()
     summary = stats.summary(source)
     print(json.dumps(summary, indent=2))
     print(f"wrote {args.out / 'tracks.csv'}, {args.out / 'summary.json'}"
+          + (f", {args.out / 'decisions.csv'}" if source.has_depth else "")
           + ("" if args.no_video else f", {args.out / 'annotated.mp4'}"))
     return 0
 
@@ -161,7 +169,10 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _cmd_config(args: argparse.Namespace, cfg: Config) -> int:
-    sys.stdout.write(to_yaml(cfg))
+    if args.explain:
+        print(explain(cfg))
+    else:
+        sys.stdout.write(to_yaml(cfg))
     return 0
 
 

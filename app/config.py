@@ -70,10 +70,10 @@ class DetectionConfig:
     )
     lk_max_iterations: int = param(20, "Lucas-Kanade iterations per level", ge=1)
     lk_min_eigen: float = param(
-        1e-3, "drop LK points whose gradient matrix is weaker (featureless sky)", gt=0
+        1e-4, "drop LK points whose gradient matrix is weaker (featureless sky)", gt=0
     )
     min_texture: float = param(
-        1e-3,
+        1e-4,
         "a window whose strongest corner (min eigenvalue) is weaker is featureless sky: not seeded",
         gt=0,
     )
@@ -86,9 +86,9 @@ class DetectionConfig:
         "how the two compensated differences are merged: mean (paper) or min (no ghosts)",
         choices=("mean", "min"),
     )
-    median_ksize: int = param(5, "median filter aperture, px", ge=1, le=255, odd=True)
+    median_ksize: int = param(3, "median filter aperture, px", ge=1, le=255, odd=True)
     dilate_ksize: int = param(5, "dilation kernel side, px (1 = none)", ge=1, odd=True)
-    threshold: int = param(18, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
+    threshold: int = param(22, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
     max_mask_frac: float = param(
         0.15,
         "a mask covering more of the frame than this means a bad warp: the frame is skipped (0-1)",
@@ -135,7 +135,7 @@ class TrackingConfig:
         50.0, "a cluster farther than this from a track's prediction is not it (distThresh), px", gt=0
     )
     noise_frames: int = param(
-        3, "a candidate seen in more than this many frames becomes confirmed (noiseThresh)", ge=0
+        5, "a candidate seen in more than this many frames becomes confirmed (noiseThresh)", ge=0
     )
     candidate_max_misses: int = param(
         2, "a candidate missed this many frames in a row is dropped as noise", ge=1
@@ -146,7 +146,7 @@ class TrackingConfig:
         2.0, "Kalman process noise: white acceleration (std), px/frame²", gt=0
     )
     predict_with_homography: bool = param(
-        True, "move track predictions through the frame's homography before association"
+        False, "move track predictions through the frame's homography before association"
     )
 
 
@@ -159,11 +159,102 @@ class PerceptionConfig:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
 
+# --------------------------------------------------------------------------- camera
+
+
+@dataclass(frozen=True)
+class StreamIntrinsics:
+    """Pinhole intrinsics of one stream, px."""
+
+    width: int = param(640, "image width, px", ge=1)
+    height: int = param(480, "image height, px", ge=1)
+    fx: float = param(615.0, "focal length along x, px", gt=0)
+    fy: float = param(615.0, "focal length along y, px", gt=0)
+    ppx: float = param(320.0, "principal point x, px")
+    ppy: float = param(240.0, "principal point y, px")
+
+
+def _depth_default() -> StreamIntrinsics:
+    return StreamIntrinsics(fx=385.0, fy=385.0)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Calibration used when neither the camera nor the recording provides one. Defaults:
+    typical D435i factory calibrations at 640x480 (colour fx ~ 615 px, depth fx ~ 385 px, as
+    printed by `rs-enumerate-devices -c` in RealSense users' reports); use your own."""
+
+    color: StreamIntrinsics = field(default_factory=StreamIntrinsics)
+    depth: StreamIntrinsics = field(default_factory=_depth_default)
+    depth_to_color_x_m: float = param(
+        0.015, "colour camera's offset from the depth camera along X, m (D435i: ~15 mm)"
+    )
+    depth_to_color_y_m: float = param(0.0, "offset along Y, m")
+    depth_to_color_z_m: float = param(0.0, "offset along Z, m")
+    depth_scale_m: float = param(0.001, "metres per depth unit", gt=0)
+
+
+# --------------------------------------------------------------------------- decision
+
+
+@dataclass(frozen=True)
+class DecisionConfig:
+    """Stage 4 — threat assessment and the evasive command (paper Alg. 4, §4-D, eq. 4.3)."""
+
+    min_range_m: float = param(0.2, "depth below this is no data (D435i min-Z), m", gt=0)
+    max_range_m: float = param(
+        10.0, "depth beyond this is not trusted (D435i useful range, paper §4-D), m", gt=0
+    )
+    depth_percentile: float = param(
+        25.0, "percentile of the blob's depth pixels taken as its distance", ge=0, le=100
+    )
+    min_depth_pixels: int = param(6, "fewer trusted depth pixels on the blob: no distance", ge=1)
+    emergency_m: float = param(0.6, "closer than this: emergency stop (emergencyThresh), m", gt=0)
+    safe_window_m: float = param(
+        1.5, "lateral radius of the safe window, R_safe (paper §5-C: 1.5 m), m", gt=0
+    )
+    avoid_m: float | None = param(
+        1.0,
+        "evade a hostile object closer than this (avoidThresh; paper §5-C: 1 m), m; "
+        "null: derive from eq. 4.3 with object_speed_mps",
+        gt=0,
+    )
+    object_speed_mps: float = param(
+        2.0, "expected object speed v_obj for eq. 4.3 (used when avoid_m is null), m/s", gt=0
+    )
+    evade_speed_mps: float = param(
+        3.0, "diagonal evasion speed v (paper §5-C: 3 m/s max manoeuvre speed), m/s", gt=0
+    )
+    max_speed_mps: float = param(3.0, "no command exceeds this speed (v_max), m/s", gt=0)
+    release_margin_m: float = param(
+        0.3, "an evasion ends once the object is this far outside the window, m", ge=0
+    )
+    min_altitude_m: float = param(
+        2.0, "below this (or with altitude unknown) never command a downward component, m", ge=0
+    )
+    trigger: str = param(
+        "distance",
+        "distance: paper's fixed thresholds; ttc: also evade when time-to-collision is short",
+        choices=("distance", "ttc"),
+    )
+    ttc_avoid_s: float = param(1.0, "with trigger ttc: evade when time-to-collision < this, s", gt=0)
+    max_depth_age_s: float = param(
+        0.2, "a distance older than this never triggers (stale depth is not 'close'), s", gt=0
+    )
+    kalman_measurement_std_m: float = param(0.15, "3-D track: depth measurement noise (std), m", gt=0)
+    kalman_accel_std_mps2: float = param(6.0, "3-D track: white acceleration noise (std), m/s²", gt=0)
+    max_hold_s: float = param(
+        1.5, "an evasion or stop whose object is no longer measured ends after this, s", gt=0
+    )
+
+
 @dataclass(frozen=True)
 class Config:
     """midair configuration."""
 
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    decision: DecisionConfig = field(default_factory=DecisionConfig)
 
 
 # --------------------------------------------------------------------------- loading
@@ -229,6 +320,11 @@ def _build(cls: type[T], data: Mapping[str, Any], prefix: str) -> T:
 
 def _check(key: str, value: Any, typ: Any, meta: Mapping[str, Any]) -> Any:
     shown = f"{key} = {value!r}"
+    args = getattr(typ, "__args__", ())
+    if type(None) in args:  # "X | None": null is allowed, anything else must be an X
+        if value is None:
+            return None
+        typ = next(a for a in args if a is not type(None))
     if typ is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{shown}: must be true or false")
@@ -267,6 +363,47 @@ def check_consistency(cfg: Config) -> None:
             f"perception.detection.min_points_per_window = {d.min_points_per_window}: "
             f"must be <= max_points_per_window ({d.max_points_per_window})"
         )
+    dc = cfg.decision
+    if dc.min_range_m >= dc.max_range_m:
+        raise ConfigError(f"decision.min_range_m = {dc.min_range_m:g}: must be < max_range_m "
+                          f"({dc.max_range_m:g})")
+    if dc.evade_speed_mps > dc.max_speed_mps:
+        raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
+                          f"max_speed_mps ({dc.max_speed_mps:g})")
+    avoid = avoid_distance_m(dc)
+    if dc.emergency_m >= avoid:
+        raise ConfigError(f"decision.emergency_m = {dc.emergency_m:g}: must be < the avoidance "
+                          f"distance ({avoid:g} m)")
+
+
+def avoid_distance_m(dc: DecisionConfig) -> float:
+    """avoidThresh: given, or from eq. 4.3, avoidThresh / v_obj = R_safe / v_max."""
+    if dc.avoid_m is not None:
+        return dc.avoid_m
+    return dc.safe_window_m * dc.object_speed_mps / dc.max_speed_mps
+
+
+def explain(cfg: Config) -> str:
+    """Why the decision thresholds have their values (``midair config --explain``)."""
+    dc = cfg.decision
+    avoid = avoid_distance_m(dc)
+    lines = ["Decision thresholds (paper Alg. 4, eq. 4.3: avoidThresh / v_obj = R_safe / v_max)"]
+    lines.append(f"  R_safe (decision.safe_window_m)    = {dc.safe_window_m:g} m")
+    lines.append(f"  v_max  (decision.max_speed_mps)    = {dc.max_speed_mps:g} m/s")
+    if dc.avoid_m is None:
+        lines.append(f"  v_obj  (decision.object_speed_mps) = {dc.object_speed_mps:g} m/s")
+        lines.append(f"  avoidThresh = R_safe * v_obj / v_max = {dc.safe_window_m:g} * "
+                     f"{dc.object_speed_mps:g} / {dc.max_speed_mps:g} = {avoid:.3g} m (derived)")
+    else:
+        v_obj = avoid * dc.max_speed_mps / dc.safe_window_m
+        lines.append(f"  avoidThresh (decision.avoid_m)     = {avoid:g} m (given)")
+        lines.append(f"  -> by eq. 4.3 it suits objects up to v_obj = avoidThresh * v_max / R_safe "
+                     f"= {v_obj:.3g} m/s")
+    lines.append(f"  emergency stop below {dc.emergency_m:g} m; depth trusted in "
+                 f"[{dc.min_range_m:g}, {dc.max_range_m:g}] m")
+    lines.append(f"  trigger: {dc.trigger}" + (f" (also evade when time-to-collision < "
+                                                f"{dc.ttc_avoid_s:g} s)" if dc.trigger == "ttc" else ""))
+    return "\n".join(lines)
 
 
 def describe(cfg: Any = None, prefix: str = "") -> list[tuple[str, Any, str]]:

@@ -5,7 +5,10 @@ Outputs in the chosen folder:
 - ``tracks.csv``: MOT-challenge rows ``frame,id,x,y,w,h,conf,-1,-1,-1`` (frames 1-based,
   confirmed tracks matched in that frame only);
 - ``summary.json``: frames, statuses, per-stage median/p95 ms, frames per second;
-- ``annotated.mp4`` (unless disabled): mask outline, clusters, tracks with IDs and trails.
+- ``annotated.mp4`` (unless disabled): mask outline, clusters, tracks with IDs and trails;
+  with depth also the safe window, each object's distance and the decision;
+- ``decisions.csv`` when the source has depth: ``frame,action,forward_mps,right_mps,
+  down_mps,object_id`` for every processed frame.
 """
 
 from __future__ import annotations
@@ -25,7 +28,9 @@ import cv2
 import numpy as np
 
 from app.annotate import annotate
+from app.camera import camera_from_config
 from app.config import Config
+from app.decision import Command, DecisionMaker
 from app.errors import SourceError
 from app.perception import Perception, PerceptionResult
 from app.sources import FrameSource
@@ -41,6 +46,7 @@ class ReplayStats:
     statuses: Counter[str] = field(default_factory=Counter)
     timings: dict[str, list[float]] = field(default_factory=dict)
     track_rows: list[tuple[int, int, float, float, float, float]] = field(default_factory=list)
+    decisions: list[tuple[int, Command]] = field(default_factory=list)
     wall_s: float = 0.0
 
     def add(self, r: PerceptionResult) -> None:
@@ -70,6 +76,7 @@ class ReplayStats:
             "track_rows": len(self.track_rows),
             "stages": stages,
             "processing_fps": round(self.frames / self.wall_s, 1) if self.wall_s > 0 else None,
+            "decisions": dict(Counter(c.action for _, c in self.decisions)) if self.decisions else None,
         }
 
 
@@ -79,9 +86,15 @@ def run_replay(
     out_dir: Path | None = None,
     video: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    altitude_m: float | None = None,
 ) -> ReplayStats:
-    """Run perception over every frame of ``source``; write outputs if ``out_dir`` is given."""
+    """Run perception (and, with depth, the decision) over every frame of ``source``;
+    write outputs if ``out_dir`` is given. ``altitude_m`` stands in for the flight side's
+    altitude above home (None: unknown, so no downward escape)."""
     perception = Perception(cfg.perception)
+    decider = None
+    if source.has_depth:
+        decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera))
     stats = ReplayStats()
     writer: cv2.VideoWriter | None = None
     video_path = out_dir / "annotated.mp4" if out_dir is not None else None
@@ -99,8 +112,13 @@ def run_replay(
             if result is None:
                 continue
             stats.add(result)
+            command, objects = None, None
+            if decider is not None:
+                command, objects = decider.step(result.tracks, result.frame.depth,
+                                                result.frame.t_s, altitude_m)
+                stats.decisions.append((result.frame.index, command))
             if video and video_path is not None:
-                img = annotate(result)
+                img = annotate(result, decision=(command, objects, decider) if decider else None)
                 if writer is None:
                     writer = _open_writer(video_path, source.fps, img.shape[1], img.shape[0])
                 writer.write(img)
@@ -112,6 +130,8 @@ def run_replay(
         raise SourceError(f"{source.name}: the source yielded no frames")
     if out_dir is not None:
         write_tracks_csv(out_dir / "tracks.csv", stats.track_rows)
+        if decider is not None:
+            write_decisions_csv(out_dir / "decisions.csv", stats.decisions)
         (out_dir / "summary.json").write_text(json.dumps(stats.summary(source), indent=2) + "\n")
     return stats
 
@@ -130,6 +150,17 @@ def write_tracks_csv(path: Path, rows: list[tuple[int, int, float, float, float,
         w.writerow(MOT_HEADER)
         for frame, tid, x, y, bw, bh in rows:
             w.writerow([frame, tid, f"{x:.1f}", f"{y:.1f}", f"{bw:.1f}", f"{bh:.1f}", 1, -1, -1, -1])
+    tmp.replace(path)
+
+
+def write_decisions_csv(path: Path, rows: list[tuple[int, Command]]) -> None:
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "action", "forward_mps", "right_mps", "down_mps", "object_id"])
+        for frame, c in rows:
+            w.writerow([frame, c.action, f"{c.forward_mps:.3f}", f"{c.right_mps:.3f}",
+                        f"{c.down_mps:.3f}", "" if c.object_id is None else c.object_id])
     tmp.replace(path)
 
 

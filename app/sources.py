@@ -1,8 +1,9 @@
 """Frame sources for replay: a video file, a folder of images, or a recording folder.
 
 A *recording folder* holds ``color.mp4`` or ``color/`` (images sorted by name), and
-optionally ``depth/000001.png …`` (uint16 millimetres, 0 = no data) and ``frames.csv``
-(``frame,t_s``: 1-based frame number and capture time in seconds).
+optionally ``depth/000001.png …`` (uint16 depth units, 0 = no data), ``frames.csv``
+(``frame,t_s``: 1-based frame number and capture time in seconds) and ``intrinsics.json``
+(the colour and depth calibration, see :class:`app.camera.CameraModel`).
 
 Every source yields :class:`app.perception.Frame` with 8-bit BGR colour, whatever the
 file held (grey, BGRA or 16-bit images are converted), and raises
@@ -18,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.camera import CameraModel
 from app.errors import SourceError
 from app.perception import Frame
 
@@ -48,6 +50,7 @@ class FrameSource:
     name: str
     fps: float
     has_depth: bool = False
+    camera: CameraModel | None = None  # calibration that came with the source, if any
 
     def __iter__(self) -> Iterator[Frame]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -148,6 +151,8 @@ class RecordingSource(FrameSource):
         self.fps = color.fps
         self.depth_dir = folder / "depth"
         self.has_depth = self.depth_dir.is_dir()
+        if (folder / "intrinsics.json").is_file():
+            self.camera = CameraModel.load(folder / "intrinsics.json")
 
     def __len__(self) -> int:
         return len(self.color)

@@ -12,6 +12,7 @@ the warp, so their motion relative to the background is known exactly.
 from __future__ import annotations
 
 import csv
+import json
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from app.camera import CameraModel, Intrinsics
 from app.perception import Frame
 
 
@@ -35,18 +37,47 @@ class SyntheticObject:
 
 
 @dataclass(frozen=True)
+class SyntheticObject3D:
+    """An object moving in colour-camera XYZ (m; X right, Y down, Z forward), projected
+    with the scene's intrinsics: its image size and depth follow its distance exactly."""
+
+    object_id: int
+    start_xyz_m: tuple[float, float, float]
+    velocity_mps: tuple[float, float, float]
+    diameter_m: float = 0.3
+    brightness: int = 40
+
+
+@dataclass(frozen=True)
 class SyntheticScene:
     width: int = 640
     height: int = 480
     fps: float = 30.0
     frames: int = 150
     seed: int = 1
-    pan_px_per_frame: float = 2.5  # camera pan speed in the image, px/frame
+    pan_px_per_frame: float = 2.5  # camera pan: the background moves -2.5 px/frame in x
     noise_std: float = 1.5  # sensor noise, grey levels
     objects: tuple[SyntheticObject, ...] = (
         SyntheticObject(1, (120.0, 150.0), (3.0, 0.8), 18.0),
-        SyntheticObject(2, (520.0, 300.0), (-2.2, -1.0), 26.0, growth=1.004,
+        SyntheticObject(2, (520.0, 300.0), (-0.5, -1.2), 26.0, growth=1.004,
                         start_m=20.0, closing_mps=3.0),
+    )
+    objects_3d: tuple[SyntheticObject3D, ...] = ()
+
+    def camera(self) -> CameraModel:
+        """Colour intrinsics of a D435i-like lens at this resolution; depth aligned to it."""
+        intr = Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5).scaled_to(self.width, self.height)
+        return CameraModel(intr, intr)
+
+
+def approach_scene(start_xyz_m: tuple[float, float, float], closing_mps: float = 4.0,
+                   frames: int = 75, seed: int = 2, diameter_m: float = 0.3,
+                   lateral_mps: tuple[float, float] = (0.0, 0.0)) -> SyntheticScene:
+    """One object flying at the camera (a ball thrown at the drone), over a still camera."""
+    return SyntheticScene(
+        frames=frames, seed=seed, pan_px_per_frame=0.5, objects=(),
+        objects_3d=(SyntheticObject3D(1, start_xyz_m, (lateral_mps[0], lateral_mps[1], -closing_mps),
+                                      diameter_m),),
     )
 
 
@@ -110,6 +141,26 @@ def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float
             x0, y0, x1, y1 = max(0, x - a), max(0, y - a), min(scene.width, x + a), min(scene.height, y + a)
             if x1 > x0 and y1 > y0:
                 truth.append((ob.object_id, x0, y0, x1 - x0, y1 - y0))
+        cam = scene.camera().color
+        for ob3 in scene.objects_3d:
+            t = k / scene.fps
+            x3, y3, z3 = (p + v * t for p, v in zip(ob3.start_xyz_m, ob3.velocity_mps, strict=True))
+            if z3 < 0.25:
+                continue  # at or past the camera
+            (u, v), = cam.project(np.array([[x3, y3, z3]]))
+            d = cam.fx * ob3.diameter_m / z3
+            if not (-d < u < scene.width + d and -d < v < scene.height + d):
+                continue
+            mask = np.zeros_like(grey)
+            cv2.circle(mask, (int(round(u)), int(round(v))), max(1, int(round(d / 2))), 255, -1,
+                       cv2.LINE_AA)
+            alpha = mask.astype(np.float32) / 255.0
+            grey = (grey * (1 - alpha) + ob3.brightness * alpha).astype(np.uint8)
+            depth[mask > 127] = int(z3 * 1000)
+            x0, y0 = max(0.0, u - d / 2), max(0.0, v - d / 2)
+            x1, y1 = min(float(scene.width), u + d / 2), min(float(scene.height), v + d / 2)
+            if x1 > x0 and y1 > y0:
+                truth.append((ob3.object_id, x0, y0, x1 - x0, y1 - y0))
         noisy = grey.astype(np.float32) + rng.normal(0, scene.noise_std, grey.shape)
         colour = cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
         # a tint so the colour frame is not grey: sky bluish
@@ -122,6 +173,7 @@ def write_recording(scene: SyntheticScene, folder: Path) -> Path:
     plus its ground truth ``gt.csv``. Returns the folder."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(exist_ok=True)
+    (folder / "intrinsics.json").write_text(json.dumps(scene.camera().to_json(), indent=2) + "\n")
     writer = cv2.VideoWriter(str(folder / "color.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
                              scene.fps, (scene.width, scene.height))
     if not writer.isOpened():

@@ -61,6 +61,7 @@ class TrackReport:
     vy: float
     box: tuple[float, float, float, float]  # x, y, w, h px, centred on (x, y)
     matched: bool  # False while lost (coasting on the prediction)
+    last_seen_s: float  # time of the newest matched frame, s (source clock)
     hits: int
     cluster: Cluster | None
     trail: tuple[tuple[float, float], ...]
@@ -199,6 +200,7 @@ class Tracker:
         w, h = t.box_wh
         return TrackReport(
             track_id=t.track_id, x=x, y=y, vx=float(t.kf.x[1, 0]), vy=float(t.kf.x[3, 0]),
-            box=(x - w / 2, y - h / 2, w, h), matched=t.cluster is not None, hits=t.hits,
+            box=(x - w / 2, y - h / 2, w, h), matched=t.cluster is not None,
+            last_seen_s=t.last_seen_s, hits=t.hits,
             cluster=t.cluster, trail=tuple(t.trail),
         )

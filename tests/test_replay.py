@@ -13,12 +13,19 @@ from app.config import Config
 from app.evaluate import Clip, evaluate_clip, read_boxes, score
 from app.replay import run_replay
 from app.sources import open_source
-from app.synthetic import SyntheticScene, write_recording
+from app.synthetic import SyntheticObject, SyntheticScene, write_recording
+
+# Two objects against the sky that never come within a gate of each other: every miss is
+# the method's own (warm-up, confirmation after noise_frames, the last frame's missing t+1).
+SCENE = SyntheticScene(frames=90, seed=3, objects=(
+    SyntheticObject(1, (100.0, 120.0), (3.0, 0.5), 18.0),
+    SyntheticObject(2, (540.0, 60.0), (1.0, 0.3), 24.0),  # the background moves -2.5 px/frame
+))
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return write_recording(SyntheticScene(frames=90, seed=3), tmp_path_factory.mktemp("rec") / "flight")
+    return write_recording(SCENE, tmp_path_factory.mktemp("rec") / "flight")
 
 
 def test_replay_cli_writes_tracks_summary_and_video(recording: Path, tmp_path: Path) -> None:
@@ -42,9 +49,10 @@ def test_replay_cli_writes_tracks_summary_and_video(recording: Path, tmp_path: P
 def test_synthetic_objects_are_found_with_stable_ids(recording: Path) -> None:
     stats = run_replay(open_source(recording), Config(), out_dir=None, video=False)
     s = score(read_boxes(recording / "gt.csv"), stats.track_rows, 90)
-    assert s["recall"] > 0.85
-    assert s["precision"] > 0.9
-    assert s["id_switches"] <= 1
+    # at most 2 x (1 warm-up + 6 to confirm) + 2 last-frame rows of 180 can be missed
+    assert s["recall"] >= (180 - 16) / 180 - 0.02
+    assert s["precision"] > 0.95
+    assert s["id_switches"] == 0
 
 
 def test_a_real_clip_end_to_end(data_dir: Path) -> None:

@@ -1,0 +1,220 @@
+"""Stage 4: property-based checks of the decision rules, depth lookup, and a replay of a
+generated recording with depth in which an object flies at the camera."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+
+from app.camera import CameraModel, Intrinsics
+from app.config import Config, DecisionConfig, avoid_distance_m, config_from_mapping, explain
+from app.decision import EVADE, NONE, STOP, DecisionMaker, ObjectState, away_from, closes_on
+from app.depth import object_depth
+from app.errors import ConfigError
+from app.recognition import Cluster
+from app.replay import run_replay
+from app.sources import open_source
+from app.synthetic import approach_scene, write_recording
+
+CAM = CameraModel(Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5),
+                  Intrinsics(640, 480, 385.0, 385.0, 319.5, 239.5),
+                  np.eye(3), np.array([0.015, 0.0, 0.0]))
+CFG = DecisionConfig()
+ALT = 10.0  # m, above the altitude floor
+
+
+def obj(x: float, y: float, z: float, tid: int = 1, fresh: bool = True, t: float = 0.0,
+        closing: float = 0.0) -> ObjectState:
+    ttc = z / closing if closing > 0.05 else None
+    return ObjectState(tid, (x, y, z), t if fresh else t - 10.0, fresh, closing, ttc)
+
+
+coord = st.floats(-1.4, 1.4, allow_nan=False)
+
+
+@settings(max_examples=300, deadline=None)
+@given(x=coord, y=coord, z=st.floats(CFG.emergency_m + 0.01, 0.99))
+def test_threat_in_any_quadrant_is_evaded_away_in_both_axes(x: float, y: float, z: float) -> None:
+    assume(math.hypot(x, y) < CFG.safe_window_m and abs(x) > 1e-3 and abs(y) > 1e-3)
+    cmd = DecisionMaker(CFG, CAM).decide([obj(x, y, z)], 0.0, ALT)
+    assert cmd.action == EVADE
+    assert cmd.right_mps * x < 0 and cmd.down_mps * y < 0  # away from it on both axes
+    assert cmd.forward_mps == 0.0
+    assert cmd.speed_mps <= CFG.max_speed_mps + 1e-9
+
+
+def test_the_four_quadrants_of_the_paper() -> None:
+    cases = {(-0.5, -0.5): (1, 1), (0.5, -0.5): (-1, 1), (-0.5, 0.5): (1, -1), (0.5, 0.5): (-1, -1)}
+    for (x, y), (r, d) in cases.items():  # upper-left -> down-right, ..., lower-right -> up-left
+        cmd = DecisionMaker(CFG, CAM).decide([obj(x, y, 0.8)], 0.0, ALT)
+        assert (np.sign(cmd.right_mps), np.sign(cmd.down_mps)) == (r, d)
+        assert math.isclose(cmd.speed_mps, CFG.evade_speed_mps)
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=coord, y=coord, z=st.one_of(st.just(float("nan")), st.floats(0.01, 20.0)))
+def test_stale_or_missing_depth_never_triggers(x: float, y: float, z: float) -> None:
+    cmd = DecisionMaker(CFG, CAM).decide([obj(x, y, z, fresh=False)], 0.0, ALT)
+    assert cmd.action == NONE
+    if math.isnan(z):
+        assert DecisionMaker(CFG, CAM).decide([obj(x, y, z)], 0.0, ALT).action == NONE
+
+
+def test_no_depth_pixels_mean_no_distance() -> None:
+    cl = Cluster(320.0, 240.0, (310, 230, 20, 20), 400, (np.array([[[310, 230]], [[329, 230]],
+                                                                   [[329, 249]], [[310, 249]]]),))
+    zeros = np.zeros((480, 640), np.uint16)
+    assert object_depth(cl, zeros, CAM, 0.2, 10.0, 25, 6) is None
+    far = np.full((480, 640), 15000, np.uint16)  # 15 m: beyond the trusted range
+    assert object_depth(cl, far, CAM, 0.2, 10.0, 25, 6) is None
+    dm = DecisionMaker(CFG, CAM)
+    from app.tracking import TrackReport
+    tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, ())
+    cmd, objects = dm.step([tr], zeros, 0.0, ALT)
+    assert cmd.action == NONE and objects == []
+
+
+def test_depth_is_read_on_the_blob_through_the_calibration() -> None:
+    """A 2 m object seen by a depth camera 15 mm to the left of the colour camera, with
+    another focal length: the lookup must find its depth pixels, not the 6 m wall."""
+    depth = np.full((480, 640), 6000, np.uint16)
+    z = 2.0
+    # the object's colour pixels: a disc of radius 20 px around (400, 200)
+    uu, vv = np.meshgrid(np.arange(640), np.arange(480))
+    disc = (uu - 400) ** 2 + (vv - 200) ** 2 <= 20**2
+    pts_c = CAM.color.deproject(uu[disc], vv[disc], np.full(disc.sum(), z))
+    pts_d = pts_c - CAM.translation_m
+    uv_d = np.round(CAM.depth.project(pts_d)).astype(int)
+    depth[uv_d[:, 1], uv_d[:, 0]] = int(z * 1000)
+    import cv2
+    mask = disc.astype(np.uint8) * 255
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cl = Cluster(400.0, 200.0, cv2.boundingRect(contours[0]), int(disc.sum()), tuple(contours))
+    d = object_depth(cl, depth, CAM, 0.2, 10.0, 25, 6)
+    assert d is not None and abs(d.z_m - 2.0) < 0.01
+    x, y, zz = d.xyz_m
+    assert abs(x - (400 - 319.5) / 615 * 2) < 0.01 and abs(y - (200 - 239.5) / 615 * 2) < 0.01
+
+
+@settings(max_examples=200, deadline=None)
+@given(x=coord, y=coord, z=st.floats(0.05, 12.0), alt=st.one_of(st.none(), st.floats(0, 1.99)))
+def test_altitude_floor_removes_the_downward_component(x: float, y: float, z: float,
+                                                       alt: float | None) -> None:
+    cmd = DecisionMaker(CFG, CAM).decide([obj(x, y, z)], 0.0, alt)
+    assert cmd.down_mps <= 0.0
+    assert cmd.speed_mps <= CFG.max_speed_mps + 1e-9
+
+
+def test_altitude_floor_turns_a_downward_escape_horizontal() -> None:
+    cmd = DecisionMaker(CFG, CAM).decide([obj(-0.5, -0.5, 0.8)], 0.0, 1.0)  # upper-left, low
+    assert cmd.action == EVADE and cmd.down_mps == 0.0 and cmd.right_mps > 0
+    assert math.isclose(cmd.speed_mps, CFG.evade_speed_mps)
+
+
+@settings(max_examples=200, deadline=None)
+@given(objs=st.lists(st.tuples(coord, coord, st.floats(0.05, 12.0)), min_size=1, max_size=4),
+       speed=st.floats(0.5, 10.0), vmax=st.floats(0.5, 10.0))
+def test_no_command_exceeds_the_speed_limit(objs: list, speed: float, vmax: float) -> None:
+    assume(speed <= vmax)
+    cfg = DecisionConfig(evade_speed_mps=speed, max_speed_mps=vmax)
+    dm = DecisionMaker(cfg, CAM)
+    states = [obj(x, y, z, tid=i + 1) for i, (x, y, z) in enumerate(objs)]
+    for k in range(3):
+        cmd = dm.decide(states, k * 0.03, ALT)
+        assert cmd.speed_mps <= vmax + 1e-9
+        if cmd.action == EVADE:
+            assert not any(closes_on((cmd.right_mps, cmd.down_mps), s.xyz_m[0], s.xyz_m[1])
+                           for s in states if s.lateral_m < cfg.safe_window_m
+                           and 0 < s.z_m < avoid_distance_m(cfg))
+
+
+def test_emergency_outranks_evade_and_nearest_object_wins() -> None:
+    dm = DecisionMaker(CFG, CAM)
+    cmd = dm.decide([obj(0.5, 0.5, 0.9, tid=1), obj(3.0, 0.0, 0.4, tid=2)], 0.0, ALT)
+    assert cmd.action == STOP and cmd.object_id == 2
+    assert (cmd.forward_mps, cmd.right_mps, cmd.down_mps) == (0.0, 0.0, 0.0)
+
+
+def test_outside_the_window_or_far_is_not_a_threat() -> None:
+    dm = DecisionMaker(CFG, CAM)
+    assert dm.decide([obj(1.2, 1.2, 0.8)], 0.0, ALT).action == NONE  # lateral 1.7 m > 1.5 m
+    assert dm.decide([obj(0.2, 0.2, 3.0)], 0.0, ALT).action == NONE  # inside, but 3 m > 1 m
+
+
+def test_opposite_threats_choose_a_direction_that_closes_on_neither_or_stop() -> None:
+    dm = DecisionMaker(CFG, CAM)
+    # upper-left wants down-right, which closes on the lower-right one: up-right clears both
+    a, b = obj(-0.5, -0.3, 0.8, 1), obj(0.3, 0.5, 0.9, 2)
+    cmd = dm.decide([a, b], 0.0, ALT)
+    assert cmd.action == EVADE and cmd.right_mps > 0 and cmd.down_mps < 0
+    assert not any(closes_on((cmd.right_mps, cmd.down_mps), o.xyz_m[0], o.xyz_m[1]) for o in (a, b))
+    # surrounded on all four sides: no direction clears them all
+    ring = [obj(0.6, 0.0, 0.8, 1), obj(-0.6, 0.0, 0.8, 2), obj(0.0, 0.6, 0.8, 3), obj(0.0, -0.6, 0.8, 4)]
+    cmd = DecisionMaker(CFG, CAM).decide(ring, 0.0, ALT)
+    assert cmd.action == STOP and "no escape direction" in cmd.reason
+
+
+def test_hysteresis_keeps_direction_and_releases_past_the_margin() -> None:
+    dm = DecisionMaker(CFG, CAM)
+    first = dm.decide([obj(-0.1, -0.1, 0.9, t=0.0)], 0.0, ALT)
+    assert first.action == EVADE and first.right_mps > 0 and first.down_mps > 0
+    # noise flips the object across the centre: the direction stays latched
+    flip = dm.decide([obj(0.05, 0.05, 0.85, t=0.03)], 0.03, ALT)
+    assert (flip.right_mps, flip.down_mps) == (first.right_mps, first.down_mps)
+    # just outside the window but inside the margin: still evading
+    assert dm.decide([obj(1.6, 0.0, 0.8, t=0.06)], 0.06, ALT).action == EVADE
+    # beyond window + margin: released
+    assert dm.decide([obj(1.9, 0.0, 0.8, t=0.09)], 0.09, ALT).action == NONE
+
+
+def test_eq_4_3_round_trips_and_is_explained() -> None:
+    cfg = config_from_mapping({"decision": {"avoid_m": None, "safe_window_m": 1.5,
+                                            "object_speed_mps": 2.0, "max_speed_mps": 3.0}})
+    assert math.isclose(avoid_distance_m(cfg.decision), 1.0)
+    # and back: the given avoid_m implies v_obj = avoid * v_max / R_safe
+    given_cfg = Config()
+    text = explain(given_cfg)
+    assert "v_obj = avoidThresh * v_max / R_safe = 2 m/s" in text
+    assert "= 1.5 * 2 / 3 = 1 m (derived)" in explain(cfg)
+    with pytest.raises(ConfigError, match="decision.emergency_m = 1.2: must be < the avoidance"):
+        config_from_mapping({"decision": {"emergency_m": 1.2}})
+
+
+def test_away_from_and_closes_on() -> None:
+    assert away_from(-1, -1)[0] > 0 and away_from(-1, -1)[1] > 0
+    assert closes_on((1.0, 0.0), 0.5, 0.0) and not closes_on((1.0, 0.0), -0.5, 0.3)
+
+
+def test_ttc_trigger_evades_earlier_than_the_fixed_distance() -> None:
+    ttc_cfg = DecisionConfig(trigger="ttc", ttc_avoid_s=1.0)
+    approaching = obj(0.3, 0.3, 2.5, closing=4.0)  # ttc 0.6 s, still 2.5 m away
+    assert DecisionMaker(CFG, CAM).decide([approaching], 0.0, ALT).action == NONE
+    assert DecisionMaker(ttc_cfg, CAM).decide([approaching], 0.0, ALT).action == EVADE
+
+
+@pytest.fixture(scope="module")
+def approach(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    # a 0.3 m ball from 8 m, upper-left of the axis, closing at 4 m/s
+    return write_recording(approach_scene((-0.4, -0.3, 8.0)), tmp_path_factory.mktemp("a") / "rec")
+
+
+def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path: Path) -> None:
+    stats = run_replay(open_source(approach), Config(), tmp_path, video=False, altitude_m=ALT)
+    rows = (tmp_path / "decisions.csv").read_text().splitlines()
+    assert rows[0] == "frame,action,forward_mps,right_mps,down_mps,object_id"
+    assert len(rows) - 1 == len(stats.decisions)
+    evades = [(f, c) for f, c in stats.decisions if c.action == EVADE]
+    assert evades, "no evasion"
+    f0, c0 = evades[0]
+    # the ball is at z = 8 - 4 * (f - 1) / 30 m: the evasion starts inside the avoidance
+    # distance but before it is closer than the emergency distance
+    z_at_start = 8.0 - 4.0 * (f0 - 1) / 30.0
+    assert CFG.emergency_m < z_at_start <= CFG.avoid_m + 0.15
+    assert c0.right_mps > 0 and c0.down_mps > 0  # upper-left ball: down-right
+    assert not any(c.action == STOP for f, c in stats.decisions if f < f0)
+    assert all(c.action == NONE for f, c in stats.decisions if f < f0)
