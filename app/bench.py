@@ -7,7 +7,6 @@ ratio. ``--soak N`` also replays N frames and reports resident memory along the 
 
 from __future__ import annotations
 
-import json
 import resource
 from dataclasses import replace
 

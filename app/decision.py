@@ -207,16 +207,17 @@ class DecisionMaker:
         #    stop is for objects first measured that close, e.g. arriving from the side).
         close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
         if close:
-            o = min(close, key=lambda o: o.z_m)
-            self._engaged = _Engagement(STOP, o.track_id, (0.0, 0.0))
-            return Command(STOP, object_id=o.track_id,
-                           reason=f"object {o.track_id} at {o.z_m:.2f} m < emergency {c.emergency_m:g} m")
+            near = min(close, key=lambda o: o.z_m)
+            self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
+            return Command(STOP, object_id=near.track_id,
+                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
+                                  f"{c.emergency_m:g} m")
         if self._engaged is not None and self._engaged.kind == STOP:
-            o = by_id.get(self._engaged.object_id)
-            if (o is not None and t_s - o.measured_s <= c.max_hold_s
-                    and 0 < o.z_m < c.emergency_m + c.release_margin_m):
-                return Command(STOP, object_id=o.track_id,
-                               reason=f"holding: object {o.track_id} at {o.z_m:.2f} m")
+            held = by_id.get(self._engaged.object_id)
+            if (held is not None and t_s - held.measured_s <= c.max_hold_s
+                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
+                return Command(STOP, object_id=held.track_id,
+                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
             self._engaged = None
 
         # 2. Threats: hostile (inside the window) and close (or, with ttc, soon).
@@ -226,11 +227,11 @@ class DecisionMaker:
         # 3. A running evasion continues until its object is clear, with its latched direction.
         eng = self._engaged
         if eng is not None:
-            o = by_id.get(eng.object_id)
-            if o is None or t_s - o.measured_s > c.max_hold_s or o.z_m <= 0 or self._clear(o):
+            cur = by_id.get(eng.object_id)
+            if cur is None or t_s - cur.measured_s > c.max_hold_s or cur.z_m <= 0 or self._clear(cur):
                 self._engaged = eng = None
             elif eng.object_id not in {t.track_id for t in threats}:
-                threats.insert(0, o)  # still engaged with it (inside the release margin)
+                threats.insert(0, cur)  # still engaged with it (inside the release margin)
         if not threats:
             return Command(NONE)
 
@@ -249,11 +250,11 @@ class DecisionMaker:
             ids = ", ".join(str(t.track_id) for t in threats)
             return Command(STOP, object_id=primary.track_id,
                            reason=f"no escape direction clears objects {ids}: stop")
-        if eng is None or eng.object_id != primary.track_id or eng.direction != direction:
-            self._engaged = _Engagement(EVADE, eng.object_id if eng else primary.track_id, direction)
+        engaged = _Engagement(EVADE, eng.object_id if eng else primary.track_id, direction)
+        self._engaged = engaged
         speed = min(c.evade_speed_mps, c.max_speed_mps)
         right, down = direction[0] * speed, direction[1] * speed
-        return Command(EVADE, 0.0, right, down, self._engaged.object_id,
+        return Command(EVADE, 0.0, right, down, engaged.object_id,
                        reason=f"object {primary.track_id} at {primary.z_m:.2f} m, lateral "
                               f"{primary.lateral_m:.2f} m: evade {describe_direction(direction)}")
 

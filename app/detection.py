@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -75,7 +76,7 @@ class MotionDetector:
     def __init__(self, cfg: DetectionConfig, full_frame: bool = False) -> None:
         self.cfg = cfg
         self.full_frame = full_frame
-        self._lk_params = dict(
+        self._lk_params: dict[str, Any] = dict(
             winSize=(cfg.lk_window_px, cfg.lk_window_px),
             maxLevel=cfg.lk_pyramid_levels,
             criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, cfg.lk_max_iterations, 0.03),
@@ -239,7 +240,7 @@ class MotionDetector:
                 continue
             origin = np.array([x0, y0], np.float32)
             q0 = (self._pts[sel] - origin).reshape(-1, 1, 2)
-            q1, status, _err = cv2.calcOpticalFlowPyrLK(
+            q1, status, _err = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]  # stubs reject nextPts=None; the API accepts it
                 cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0, None, **self._lk_params
             )
             if q1 is None:

@@ -95,7 +95,7 @@ def static_rows(gt: dict[int, list[tuple[int, float, float, float, float]]], win
             centres.setdefault(i, {})[f] = (x + w / 2, y + h / 2)
     n = 0
     for track in centres.values():
-        for f, (cx, cy) in track.items():
+        for f in track:
             a, b = track.get(f - window), track.get(f + window)
             if a is None or b is None:
                 continue
@@ -228,7 +228,7 @@ TOTALS = (
 
 def totals(scores: list[ClipScore]) -> list[dict[str, object]]:
     groups = {s.group for s in scores}
-    named = [(n, g) for n, g in TOTALS if groups & set(g)]
+    named: list[tuple[str, tuple[str, ...]]] = [(n, g) for n, g in TOTALS if groups & set(g)]
     named += [(g, (g,)) for g in sorted(groups) if not any(g in gs for _, gs in TOTALS)]
     named.append(("all", tuple(sorted(groups))))
     out = []
@@ -257,7 +257,8 @@ def format_tables(scores: list[ClipScore], sums: list[dict[str, object]]) -> str
         f"Matching: centre distance <= max({GATE_PX:g} px, {GATE_SCALE:g} x larger GT box side); "
         "scene cuts split clips.",
         "",
-        "| clip | group | frames | GT rows | recall | precision | MOTA | IDF1 | IDSW | static GT | ms/frame |",
+        "| clip | group | frames | GT rows | recall | precision | MOTA | IDF1 | IDSW | static GT "
+        "| ms/frame |",
         "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for s in scores:

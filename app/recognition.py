@@ -79,7 +79,7 @@ def find_blobs(mask: np.ndarray, min_blob_px: int = 1, max_blobs: int | None = N
         areas=areas[keep],
         centroids=cents[keep],
         boxes=boxes[keep],
-        contours=tuple(contours[i] for i in keep),
+        contours=tuple(contours[int(i)] for i in keep),
     )
 
 

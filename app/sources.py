@@ -146,7 +146,7 @@ class RecordingSource(FrameSource):
             color = ImageFolderSource(folder / "color", fps)
         else:
             raise SourceError(f"{folder}: a recording folder needs color.mp4 or color/")
-        color._times = times  # type: ignore[attr-defined]
+        color._times = times
         self.color = color
         self.fps = color.fps
         self.depth_dir = folder / "depth"

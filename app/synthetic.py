@@ -85,13 +85,13 @@ def _world(scene: SyntheticScene, rng: np.random.Generator) -> np.ndarray:
     """Grey world texture, about 2x the frame, horizon 60 % down."""
     h, w = scene.height * 2, scene.width * 3
     y = np.linspace(0, 1, h)[:, None]
-    sky = 200 - 40 * y + np.zeros((h, w))
+    sky: np.ndarray = 200 - 40 * y + np.zeros((h, w))
     clouds = cv2.GaussianBlur(rng.normal(0, 1, (h // 8, w // 8)), (0, 0), 3)
     clouds = cv2.resize(clouds, (w, h), interpolation=cv2.INTER_CUBIC)
     sky += 25 * clouds / (np.abs(clouds).max() + 1e-9)
     horizon = int(h * 0.6)
-    ground = rng.normal(0, 1, (h - horizon, w))
-    ground = 90 + 30 * cv2.GaussianBlur(ground, (0, 0), 1.2) / 0.3
+    ground_noise = rng.normal(0, 1, (h - horizon, w))
+    ground = 90 + 30 * cv2.GaussianBlur(ground_noise, (0, 0), 1.2) / 0.3
     # a ragged treeline
     tops = horizon - (20 + 15 * np.abs(np.sin(np.arange(w) / 17.0)) + rng.integers(0, 10, w))
     img = sky
@@ -164,7 +164,7 @@ def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float
         noisy = grey.astype(np.float32) + rng.normal(0, scene.noise_std, grey.shape)
         colour = cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
         # a tint so the colour frame is not grey: sky bluish
-        colour[:, :, 0] = cv2.add(colour[:, :, 0], 25)
+        colour[:, :, 0] = np.minimum(colour[:, :, 0].astype(np.int16) + 25, 255).astype(np.uint8)
         yield Frame(k + 1, k / scene.fps, colour, depth), truth
 
 
@@ -174,7 +174,7 @@ def write_recording(scene: SyntheticScene, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "depth").mkdir(exist_ok=True)
     (folder / "intrinsics.json").write_text(json.dumps(scene.camera().to_json(), indent=2) + "\n")
-    writer = cv2.VideoWriter(str(folder / "color.mp4"), cv2.VideoWriter_fourcc(*"mp4v"),
+    writer = cv2.VideoWriter(str(folder / "color.mp4"), cv2.VideoWriter.fourcc(*"mp4v"),
                              scene.fps, (scene.width, scene.height))
     if not writer.isOpened():
         raise RuntimeError(f"cannot write {folder / 'color.mp4'}")
