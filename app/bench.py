@@ -7,8 +7,8 @@ ratio. ``--soak N`` also replays N frames and reports resident memory along the 
 
 from __future__ import annotations
 
+import os
 import resource
-from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -38,6 +38,15 @@ def time_variant(frames: list[Frame], cfg: Config, full_frame: bool, repeats: in
     return {k: np.asarray(v) for k, v in out.items()}
 
 
+def _pin_to_one_core() -> None:
+    """Run on one core (the last): fewer migrations, steadier timings."""
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cores[-1]})
+    except (AttributeError, OSError):  # not Linux: time as is
+        pass
+
+
 def rss_mib() -> float:
     """Current resident set size, MiB (Linux /proc; falls back to the peak)."""
     try:
@@ -62,14 +71,21 @@ def soak(frames: list[Frame], cfg: Config, total: int) -> list[tuple[int, float]
     return marks
 
 
-def run_bench(cfg: Config, frames: int = 300, repeats: int = 2, seed: int = 1,
+def run_bench(cfg: Config, frames: int = 300, repeats: int = 3, seed: int = 1,
               soak_frames: int = 0) -> dict[str, object]:
     cv2.setNumThreads(1)
+    _pin_to_one_core()
     clip = _frames(frames, seed)
-    # warm-up (first calls allocate and JIT-free paths settle)
+    # warm-up (first calls allocate, caches fill)
     time_variant(clip[:20], cfg, False, 1)
-    win = time_variant(clip, cfg, False, repeats)
-    full = time_variant(clip, replace(cfg), True, repeats)
+    # Interleaved, so both variants see the same background load of a shared machine.
+    runs_w: list[dict[str, np.ndarray]] = []
+    runs_f: list[dict[str, np.ndarray]] = []
+    for _ in range(repeats):
+        runs_w.append(time_variant(clip, cfg, False, 1))
+        runs_f.append(time_variant(clip, cfg, True, 1))
+    win = {k: np.concatenate([r[k] for r in runs_w]) for k in STAGES}
+    full = {k: np.concatenate([r[k] for r in runs_f]) for k in STAGES}
     result: dict[str, object] = {
         "frame_size": "640x480",
         "opencv_threads": cv2.getNumThreads(),

@@ -59,7 +59,7 @@ def _parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="time stages 1-3 on 640x480 frames, windows vs full-frame features")
     b.add_argument("--frames", type=int, default=300)
-    b.add_argument("--repeats", type=int, default=2)
+    b.add_argument("--repeats", type=int, default=3, help="interleaved runs of each variant")
     b.add_argument("--soak", type=int, default=0, metavar="N",
                    help="also replay N frames and report memory (e.g. 10000)")
     b.add_argument("--json", action="store_true", help="last line: one JSON object")

@@ -56,9 +56,9 @@ class DetectionConfig:
         choices=(4, 6, 8),
     )
     min_points_per_window: int = param(
-        12, "n of Alg. 1: re-seed a window when fewer tracked points remain", ge=1
+        8, "n of Alg. 1: re-seed a window when fewer tracked points remain", ge=1
     )
-    max_points_per_window: int = param(25, "points seeded per window at most", ge=1)
+    max_points_per_window: int = param(15, "points seeded per window at most", ge=1)
     feature_quality: float = param(
         0.01, "goodFeaturesToTrack quality level, relative to the window's best", gt=0, lt=1
     )
@@ -68,7 +68,7 @@ class DetectionConfig:
     lk_search_px: int = param(
         48, "how far beyond its window a point may move between frames, px", ge=8
     )
-    lk_max_iterations: int = param(20, "Lucas-Kanade iterations per level", ge=1)
+    lk_max_iterations: int = param(10, "Lucas-Kanade iterations per level", ge=1)
     lk_min_eigen: float = param(
         1e-4, "drop LK points whose gradient matrix is weaker (featureless sky)", gt=0
     )
@@ -121,6 +121,12 @@ class RecognitionConfig:
     )
     max_blobs: int = param(
         400, "keep only the largest blobs when a noisy mask has more than this", ge=1
+    )
+    min_fill: float = param(
+        0.0,
+        "a cluster whose blobs fill less of its box than this is a patchwork (foliage, "
+        "parallax edges), not an object (0-1; 0 = off)",
+        ge=0, lt=1,
     )
     max_cluster_frac: float = param(
         0.25, "a cluster covering more of the frame than this is not an object (0-1)", gt=0, le=1

@@ -126,6 +126,8 @@ class Recognizer:
             b = blobs.boxes[idx]
             x0, y0 = int(b[:, 0].min()), int(b[:, 1].min())
             x1, y1 = int((b[:, 0] + b[:, 2]).max()), int((b[:, 1] + b[:, 3]).max())
+            if total < self.cfg.min_fill * (x1 - x0) * (y1 - y0):
+                continue
             out.append(Cluster(float(cx), float(cy), (x0, y0, x1 - x0, y1 - y0), total,
                                tuple(blobs.contours[i] for i in idx)))
         return out

@@ -51,7 +51,7 @@ def test_yaml_dump_round_trips() -> None:
         ({"perception": {"detection": "fast"}},
          "perception.detection = 'fast': must be a section (a mapping)"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
-         "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (25)"),
+         "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
     ],
 )
 def test_bad_values_name_key_value_and_rule(data: dict, message: str) -> None:
