@@ -85,3 +85,13 @@ def test_many_blobs_are_capped_to_the_largest() -> None:
     blobs = find_blobs(m, max_blobs=10)
     assert len(blobs) == 10
     assert blobs.areas.min() >= np.sort(find_blobs(m).areas)[-10]
+
+
+def test_min_fill_rejects_a_patchwork_but_keeps_a_compact_object() -> None:
+    # foliage-like: 12 specks of 3x3 scattered over a 60x60 area, each within 10 px of another
+    specks = [(200 + 12 * (i % 5), 100 + 12 * (i // 5), 3, 3) for i in range(12)]
+    mask = _mask(*specks, (40, 40, 10, 10))
+    loose = Recognizer(RecognitionConfig(area_px=40, dist_px=10, min_fill=0.0))(mask)[0]
+    strict = Recognizer(RecognitionConfig(area_px=40, dist_px=10, min_fill=0.25))(mask)[0]
+    assert sorted(c.box for c in loose) == [(40, 40, 10, 10), (200, 100, 51, 27)]
+    assert [c.box for c in strict] == [(40, 40, 10, 10)]
