@@ -14,7 +14,7 @@ from pathlib import Path
 
 from app import __version__
 from app.config import Config, explain, load_config, to_yaml
-from app.errors import UserError
+from app.errors import UsageError, UserError
 
 log = logging.getLogger("midair")
 
@@ -118,7 +118,7 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from app.synthetic import SyntheticScene, write_recording
 
     if args.frames < 10:
-        raise UserError(f"--frames {args.frames}: must be at least 10")
+        raise UsageError(f"--frames {args.frames}: must be at least 10")
     rec = write_recording(SyntheticScene(frames=args.frames, seed=args.seed), args.out / "recording")
     source = open_source(rec)
     bar = ProgressBar("demo")
@@ -146,7 +146,7 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
         keys = [k.strip() for k in args.only.split(",") if k.strip()]
         clips = [c for c in clips if any(k in c.name or k in c.group for k in keys)]
         if not clips:
-            raise UserError(f"--only {args.only}: no clip matches")
+            raise UsageError(f"--only {args.only}: no clip matches")
     scores = evaluate_all(clips, cfg, args.workers)
     sums = totals(scores)
     print(format_tables(scores, sums))
@@ -160,7 +160,7 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from app.bench import format_bench, run_bench
 
     if args.frames < 30:
-        raise UserError(f"--frames {args.frames}: must be at least 30")
+        raise UsageError(f"--frames {args.frames}: must be at least 30")
     result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak)
     print(format_bench(result))
     if args.json:

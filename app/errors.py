@@ -23,3 +23,9 @@ class SourceError(UserError):
     """A frame source cannot be opened or read (missing, unreadable, wrong shape)."""
 
     exit_code = 3
+
+
+class UsageError(UserError):
+    """A command-line option out of range."""
+
+    exit_code = 2

@@ -62,3 +62,16 @@ def test_a_real_clip_end_to_end(data_dir: Path) -> None:
     s = evaluate_clip(clip, Config())
     assert s.frames == 301
     assert s.recall > 0.9 and s.precision > 0.9
+
+
+def test_demo_command_runs_the_embedded_default(tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "demo", "--out", str(tmp_path),
+                           "--frames", "40"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "against the truth: recall" in proc.stdout
+    for name in ("annotated.mp4", "tracks.csv", "summary.json", "recording/color.mp4",
+                 "recording/gt.csv", "recording/intrinsics.json", "recording/depth/000040.png"):
+        assert (tmp_path / name).is_file(), name
+    bad = subprocess.run([sys.executable, "-m", "app.cli", "demo", "--out", str(tmp_path),
+                          "--frames", "3"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--frames 3: must be at least 10" in bad.stderr
