@@ -254,6 +254,46 @@ class DecisionConfig:
     )
 
 
+# --------------------------------------------------------------------------- flight
+
+FLIGHT_MODES = ("position", "hold", "mission", "altitude", "manual", "offboard", "return",
+                "land", "takeoff", "other")
+
+
+@dataclass(frozen=True)
+class FlightConfig:
+    """Engagement with the autopilot: when midair may take control and how it gives it back."""
+
+    mode: str = param(
+        "guard",
+        "guard: monitor and intervene; shadow: never command, only log what it would do",
+        choices=("guard", "shadow"),
+    )
+    takeover_modes: tuple[str, ...] = param(
+        ("position", "hold", "mission"),
+        "flight modes in which midair may switch the vehicle to offboard",
+        choices=FLIGHT_MODES,
+    )
+    min_takeover_altitude_m: float = param(
+        2.0, "never take control below this altitude above home, m", ge=0
+    )
+    max_decision_age_ms: float = param(
+        150.0, "a setpoint comes from a decision younger than this, or is zero velocity, ms", gt=0
+    )
+    stale_release_s: float = param(
+        1.0, "decisions stale this long while in control: leave offboard to Hold, s", gt=0
+    )
+    release_after_s: float = param(
+        0.5, "no threat for this long while in control: hand control back, s", gt=0
+    )
+    offboard_confirm_s: float = param(
+        1.0, "the vehicle must report Offboard this soon after we ask, or we give up, s", gt=0
+    )
+    pilot_cooldown_s: float = param(
+        10.0, "after the pilot takes control back, do not take over again for this long, s", ge=0
+    )
+
+
 @dataclass(frozen=True)
 class Config:
     """midair configuration."""
@@ -261,6 +301,7 @@ class Config:
     perception: PerceptionConfig = field(default_factory=PerceptionConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     decision: DecisionConfig = field(default_factory=DecisionConfig)
+    flight: FlightConfig = field(default_factory=FlightConfig)
 
 
 # --------------------------------------------------------------------------- loading
@@ -331,6 +372,14 @@ def _check(key: str, value: Any, typ: Any, meta: Mapping[str, Any]) -> Any:
         if value is None:
             return None
         typ = next(a for a in args if a is not type(None))
+    if getattr(typ, "__origin__", None) is tuple:  # tuple[str, ...]: a YAML list of strings
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"{shown}: must be a list of strings")
+        choices = meta.get("choices")
+        for v in value:
+            if choices is not None and v not in choices:
+                raise ConfigError(f"{shown}: {v!r} is not one of {', '.join(choices)}")
+        return tuple(value)
     if typ is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"{shown}: must be true or false")

@@ -50,6 +50,12 @@ def test_yaml_dump_round_trips() -> None:
          "perception.tracking.lost_s = '.5': must be a number"),
         ({"perception": {"detection": "fast"}},
          "perception.detection = 'fast': must be a section (a mapping)"),
+        ({"flight": {"takeover_modes": ["position", "acro"]}},
+         "flight.takeover_modes = ['position', 'acro']: 'acro' is not one of position, hold, "
+         "mission, altitude, manual, offboard, return, land, takeoff, other"),
+        ({"flight": {"takeover_modes": "position"}},
+         "flight.takeover_modes = 'position': must be a list of strings"),
+        ({"flight": {"mode": "test"}}, "flight.mode = 'test': must be one of guard, shadow"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
     ],

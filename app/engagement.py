@@ -1,0 +1,216 @@
+"""When midair takes control of the vehicle, what it streams, and how it gives control back.
+
+Pure logic: one :meth:`Engagement.tick` per control period with the newest vehicle state
+and the newest decision; it returns what the flight adapter must do. No MAVSDK here.
+
+States::
+
+    monitor ──threat & may take over──▶ requesting ──vehicle reports Offboard──▶ engaged
+       ▲                                    │ refused / timed out                  │
+       │◀───────────────────────────────────┘                                      │
+       │◀── released (no threat for release_after_s: back to Mission, else Hold) ──┤
+       │◀── stale decisions for stale_release_s: Hold ─────────────────────────────┤
+       └◀── cooldown ◀── pilot changed the mode / link came back in another mode ──┘
+
+Safety rules held here:
+
+- Take over only when armed, in air, at or above ``min_takeover_altitude_m``, connected,
+  in one of ``takeover_modes`` and not in a pilot cooldown. Shadow mode never commands.
+- A setpoint is set before offboard is requested (PX4 refuses Offboard without one).
+- Dead-man: every setpoint comes from a decision younger than ``max_decision_age_ms``;
+  otherwise zero velocity; stale for ``stale_release_s``: leave offboard to Hold. (MAVSDK
+  re-sends the last setpoint by itself, so PX4's own offboard-loss failsafe does not
+  protect against this process hanging.)
+- Pilot wins: once engaged, any mode other than Offboard means the pilot (or a failsafe)
+  took over: stop commanding at once, never re-take control during ``pilot_cooldown_s``.
+- Link loss: the setpoint is cleared to zero at once; after the link returns nothing but
+  zero is sent until a decision made after the reconnection arrives, and if the vehicle is
+  no longer in Offboard we do not take it back.
+- Every velocity is clamped to ``max_speed_mps``.
+
+Velocities are body frame (forward, right, down), m/s; times are monotonic seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from app.config import FlightConfig
+from app.decision import NONE, Command
+
+MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
+ZERO = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """The autopilot as last reported (newest values only)."""
+
+    t_s: float  # monotonic time of this snapshot, s
+    connected: bool  # heartbeats arriving
+    armed: bool
+    in_air: bool
+    mode: str  # one of app.config.FLIGHT_MODES
+    altitude_m: float | None  # above home, m; None or NaN while unknown
+
+
+@dataclass(frozen=True)
+class Decision:
+    command: Command
+    t_s: float  # monotonic time the decision was made (for its frame), s
+
+
+@dataclass(frozen=True)
+class Output:
+    """What the flight adapter does this tick."""
+
+    state: str
+    setpoint: tuple[float, float, float] | None = None  # stream this (FRD m/s); None: hands off
+    start_offboard: bool = False  # switch to Offboard (after the setpoint is set)
+    leave_to: str | None = None  # leave Offboard to this mode ("mission" or "hold")
+    status: str | None = None  # a status text for the ground station and the log
+
+
+class Engagement:
+    """The take-over / release state machine.
+
+    Parameters
+    ----------
+    cfg
+        Flight settings (s, ms, m; see :class:`app.config.FlightConfig`).
+    max_speed_mps
+        Bound on every setpoint's speed, m/s (``decision.max_speed_mps``).
+    """
+
+    def __init__(self, cfg: FlightConfig, max_speed_mps: float) -> None:
+        self.cfg = cfg
+        self.max_speed_mps = max_speed_mps
+        self.state = MONITOR
+        self._since = 0.0  # when the current state (or threat-free spell) began
+        self._calm_since: float | None = None
+        self._stale_since: float | None = None
+        self._return_to = "hold"
+        self._cooldown_until = -math.inf
+        self._link_was_lost = False
+        self._fresh_after = -math.inf  # only decisions made after this may command
+        self._shadow_said: str | None = None
+
+    # ------------------------------------------------------------------ main
+
+    def tick(self, v: VehicleState, d: Decision | None) -> Output:
+        c = self.cfg
+        if not v.connected:
+            return self._link_lost(v)
+        if self._link_was_lost:
+            self._link_was_lost = False
+            self._fresh_after = v.t_s
+            if self.state != MONITOR and v.mode != "offboard":
+                return self._pilot_took_over(v, f"link back in {v.mode}: not taking control back")
+
+        cmd = d.command if d is not None and self._usable(d, v.t_s) else None
+        if self.state == MONITOR:
+            return self._monitor(v, cmd)
+
+        # requesting or engaged: we hold (or are asking for) control
+        if self.state == ENGAGED and v.mode != "offboard":
+            return self._pilot_took_over(v, f"pilot switched to {v.mode}: midair stops")
+        if not v.armed or not v.in_air:
+            self.state = MONITOR
+            return Output(MONITOR, status="midair: vehicle landed or disarmed, hands off")
+        if self.state == REQUESTING:
+            if v.mode == "offboard":
+                self.state = ENGAGED
+            elif v.t_s - self._since > c.offboard_confirm_s:
+                self.state = MONITOR
+                self._cooldown_until = v.t_s + c.pilot_cooldown_s
+                return Output(MONITOR, status=f"midair: offboard refused (still {v.mode})")
+
+        # dead-man: stale decisions stream zero, and for too long, leave to Hold
+        if cmd is None:
+            if self._stale_since is None:
+                self._stale_since = v.t_s
+            if v.t_s - self._stale_since > c.stale_release_s:
+                return self._leave(v, "hold", "midair: perception stale, leaving to Hold")
+            return Output(self.state, setpoint=ZERO)
+        self._stale_since = None
+
+        if cmd.action == NONE:
+            if self._calm_since is None:
+                self._calm_since = v.t_s
+            if v.t_s - self._calm_since > c.release_after_s and self.state == ENGAGED:
+                return self._leave(v, self._return_to, f"midair: clear, back to {self._return_to}")
+            return Output(self.state, setpoint=ZERO)
+        self._calm_since = None
+        return Output(self.state, setpoint=self._velocity(cmd))
+
+    # ------------------------------------------------------------------ states
+
+    def _monitor(self, v: VehicleState, cmd: Command | None) -> Output:
+        if cmd is None or cmd.action == NONE:
+            self._shadow_said = None
+            return Output(MONITOR)
+        why_not = self._may_not_take_over(v)
+        if why_not:
+            return Output(MONITOR, status=f"midair: would {cmd.action} but {why_not}")
+        if self.cfg.mode == "shadow":
+            text = f"midair (shadow): would {cmd.action} - {cmd.reason}"
+            said, self._shadow_said = self._shadow_said, cmd.action
+            return Output(MONITOR, status=text if said != cmd.action else None)
+        self.state = REQUESTING
+        self._since = v.t_s
+        self._calm_since = None
+        self._stale_since = None
+        self._return_to = "mission" if v.mode == "mission" else "hold"
+        return Output(REQUESTING, setpoint=self._velocity(cmd), start_offboard=True,
+                      status=f"midair: {cmd.action} - {cmd.reason}")
+
+    def _may_not_take_over(self, v: VehicleState) -> str | None:
+        c = self.cfg
+        if v.t_s < self._cooldown_until:
+            return f"pilot cooldown ({self._cooldown_until - v.t_s:.1f} s left)"
+        if not v.armed:
+            return "disarmed"
+        if not v.in_air:
+            return "on the ground"
+        if v.altitude_m is None or not math.isfinite(v.altitude_m):
+            return "altitude unknown"
+        if v.altitude_m < c.min_takeover_altitude_m:
+            return f"below {c.min_takeover_altitude_m:g} m"
+        if v.mode not in c.takeover_modes:
+            return f"mode {v.mode} is not one midair may take over from"
+        return None
+
+    def _pilot_took_over(self, v: VehicleState, text: str) -> Output:
+        self.state = MONITOR
+        self._cooldown_until = v.t_s + self.cfg.pilot_cooldown_s
+        return Output(MONITOR, status=text)
+
+    def _leave(self, v: VehicleState, to: str, text: str) -> Output:
+        self.state = MONITOR
+        return Output(MONITOR, setpoint=ZERO, leave_to=to, status=text)
+
+    def _link_lost(self, v: VehicleState) -> Output:
+        first = not self._link_was_lost
+        self._link_was_lost = True
+        if self.state == MONITOR:
+            return Output(MONITOR, status="midair: link lost" if first else None)
+        # Replace the setpoint MAVSDK keeps re-sending, so a returning link carries zero.
+        return Output(self.state, setpoint=ZERO,
+                      status="midair: link lost, setpoint cleared" if first else None)
+
+    # ------------------------------------------------------------------ helpers
+
+    def _usable(self, d: Decision, now: float) -> bool:
+        fresh = now - d.t_s <= self.cfg.max_decision_age_ms / 1000.0
+        return fresh and d.t_s >= self._fresh_after
+
+    def _velocity(self, cmd: Command) -> tuple[float, float, float]:
+        vel = (cmd.forward_mps, cmd.right_mps, cmd.down_mps)
+        if not all(math.isfinite(x) for x in vel):
+            return ZERO
+        speed = math.sqrt(sum(x * x for x in vel))
+        if speed > self.max_speed_mps:
+            k = self.max_speed_mps / speed
+            vel = (vel[0] * k, vel[1] * k, vel[2] * k)
+        return vel

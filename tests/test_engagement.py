@@ -1,0 +1,148 @@
+"""The take-over / release state machine, driven tick by tick like the flight adapter does."""
+
+from __future__ import annotations
+
+import math
+
+from app.config import FlightConfig
+from app.decision import EVADE, NONE, STOP, Command
+from app.engagement import ENGAGED, MONITOR, REQUESTING, Decision, Engagement, VehicleState
+
+EVADE_CMD = Command(EVADE, 0.0, 2.0, -2.0, 1, "object 1 at 0.9 m")
+CALM = Command(NONE)
+DT = 0.05  # control period, s
+
+
+def vs(t: float, mode: str = "position", *, connected: bool = True, armed: bool = True,
+       in_air: bool = True, alt: float | None = 10.0) -> VehicleState:
+    return VehicleState(t, connected, armed, in_air, mode, alt)
+
+
+def engaged(e: Engagement, t: float = 0.0, mode: str = "position") -> float:
+    """Bring ``e`` to engaged; return the time."""
+    out = e.tick(vs(t, mode), Decision(EVADE_CMD, t))
+    assert out.state == REQUESTING and out.start_offboard and out.setpoint == (0.0, 2.0, -2.0)
+    t += DT
+    out = e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t))
+    assert e.state == ENGAGED and out.setpoint == (0.0, 2.0, -2.0)
+    return t
+
+
+def test_takes_over_only_when_armed_airborne_high_enough_and_in_an_allowed_mode() -> None:
+    refusals = [
+        (vs(0, armed=False), "disarmed"),
+        (vs(0, in_air=False), "on the ground"),
+        (vs(0, alt=1.0), "below 2 m"),
+        (vs(0, alt=None), "altitude unknown"),
+        (vs(0, alt=math.nan), "altitude unknown"),
+        (vs(0, mode="manual"), "mode manual is not one"),
+        (vs(0, mode="land"), "mode land is not one"),
+    ]
+    for state, reason in refusals:
+        e = Engagement(FlightConfig(), 3.0)
+        out = e.tick(state, Decision(EVADE_CMD, 0.0))
+        assert out.state == MONITOR and not out.start_offboard and out.setpoint is None
+        assert out.status is not None and reason in out.status
+    for mode in ("position", "hold", "mission"):
+        assert Engagement(FlightConfig(), 3.0).tick(vs(0, mode), Decision(EVADE_CMD, 0.0)).start_offboard
+
+
+def test_shadow_mode_never_commands_and_says_what_it_would_do_once() -> None:
+    e = Engagement(FlightConfig(mode="shadow"), 3.0)
+    outs = [e.tick(vs(k * DT), Decision(EVADE_CMD, k * DT)) for k in range(5)]
+    assert all(o.setpoint is None and not o.start_offboard for o in outs)
+    assert [o.status is not None for o in outs] == [True, False, False, False, False]
+    assert "would evade" in (outs[0].status or "")
+
+
+def test_emergency_stop_streams_zero_and_speed_is_clamped() -> None:
+    e = Engagement(FlightConfig(), max_speed_mps=1.0)
+    out = e.tick(vs(0), Decision(Command(EVADE, 0.0, 3.0, 4.0, 1), 0.0))
+    assert math.isclose(math.hypot(*out.setpoint), 1.0)  # type: ignore[arg-type]
+    e2 = Engagement(FlightConfig(), 3.0)
+    t = engaged(e2)
+    out = e2.tick(vs(t + DT, "offboard"), Decision(Command(STOP, object_id=1), t + DT))
+    assert out.setpoint == (0.0, 0.0, 0.0)
+
+
+def test_release_back_to_mission_or_hold_after_calm() -> None:
+    for start_mode, back in (("mission", "mission"), ("position", "hold")):
+        e = Engagement(FlightConfig(release_after_s=0.5), 3.0)
+        t = engaged(e, mode=start_mode)
+        outs = []
+        for _ in range(15):
+            t += DT
+            outs.append(e.tick(vs(t, "offboard"), Decision(CALM, t)))
+        first_leave = next(i for i, o in enumerate(outs) if o.leave_to)
+        assert outs[first_leave].leave_to == back
+        assert 9 <= first_leave <= 11  # about 0.5 s of calm at 20 Hz
+        assert all(o.setpoint == (0.0, 0.0, 0.0) for o in outs[:first_leave])
+        assert e.state == MONITOR
+
+
+def test_dead_man_zero_velocity_then_hold_on_stale_decisions() -> None:
+    e = Engagement(FlightConfig(max_decision_age_ms=150, stale_release_s=1.0), 3.0)
+    t = engaged(e)
+    last = Decision(EVADE_CMD, t)  # perception stalls: this decision only ages
+    outs = []
+    for _ in range(30):
+        t += DT
+        outs.append(e.tick(vs(t, "offboard"), last))
+    assert outs[0].setpoint == (0.0, 2.0, -2.0)  # 50 ms old: still fresh
+    assert outs[3].setpoint == (0.0, 0.0, 0.0)  # 200 ms old: zero
+    leave = next(i for i, o in enumerate(outs) if o.leave_to)
+    assert outs[leave].leave_to == "hold" and "stale" in (outs[leave].status or "")
+    assert 20 <= leave <= 25
+
+
+def test_pilot_mode_change_wins_and_starts_a_cooldown() -> None:
+    e = Engagement(FlightConfig(pilot_cooldown_s=10.0), 3.0)
+    t = engaged(e)
+    out = e.tick(vs(t + DT, "position"), Decision(EVADE_CMD, t + DT))
+    assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
+    assert "pilot switched" in (out.status or "")
+    # still threatened, but the pilot has it: no take-over for 10 s
+    for k in range(2, 150):
+        o = e.tick(vs(t + k * DT, "position"), Decision(EVADE_CMD, t + k * DT))
+        assert not o.start_offboard and o.setpoint is None
+    later = t + 10.5
+    assert e.tick(vs(later, "position"), Decision(EVADE_CMD, later)).start_offboard
+
+
+def test_refused_offboard_gives_up() -> None:
+    e = Engagement(FlightConfig(offboard_confirm_s=1.0), 3.0)
+    e.tick(vs(0.0), Decision(EVADE_CMD, 0.0))
+    outs = [e.tick(vs(k * DT, "position"), Decision(EVADE_CMD, k * DT)) for k in range(1, 30)]
+    gave_up = next(i for i, o in enumerate(outs) if o.state == MONITOR)
+    assert "refused" in (outs[gave_up].status or "") and 19 <= gave_up <= 21
+
+
+def test_link_loss_clears_the_setpoint_and_waits_for_a_fresh_decision() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e)
+    t += DT
+    lost = e.tick(vs(t, "offboard", connected=False), Decision(EVADE_CMD, t))
+    assert lost.setpoint == (0.0, 0.0, 0.0) and "link lost" in (lost.status or "")
+    # link back, still offboard; the decision in hand predates the reconnection
+    t += 0.04
+    old = Decision(EVADE_CMD, t - 0.02)
+    assert e.tick(vs(t, "offboard"), old).setpoint == (0.0, 0.0, 0.0)
+    t += DT
+    assert e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t)).setpoint == (0.0, 2.0, -2.0)
+
+
+def test_link_back_in_another_mode_is_not_taken_back() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e)
+    e.tick(vs(t + DT, "offboard", connected=False), Decision(EVADE_CMD, t + DT))
+    out = e.tick(vs(t + 2.0, "return"), Decision(EVADE_CMD, t + 2.0))  # PX4 failsafe: RTL
+    assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
+    assert "not taking control back" in (out.status or "")
+    assert not e.tick(vs(t + 2.1, "position"), Decision(EVADE_CMD, t + 2.1)).start_offboard
+
+
+def test_landing_while_engaged_hands_off() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e)
+    out = e.tick(vs(t + DT, "offboard", in_air=False), Decision(EVADE_CMD, t + DT))
+    assert out.state == MONITOR and out.setpoint is None
