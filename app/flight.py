@@ -1,0 +1,83 @@
+"""The offboard coroutine: ticks the engagement logic against a flight link at a fixed rate.
+
+The link is anything with ``snapshot() -> VehicleState`` and ``async apply(Output)``
+(:class:`hardware.px4.Px4Link` for PX4 through MAVSDK). Decisions come from a callable
+returning the newest :class:`app.engagement.Decision` (a latest-value slot: never a queue).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from app.engagement import MONITOR, Decision, Engagement, Output, VehicleState
+
+
+class FlightLink(Protocol):
+    def snapshot(self) -> VehicleState: ...
+
+    async def apply(self, out: Output) -> None: ...
+
+
+@dataclass
+class LoopStats:
+    ticks: int = 0
+    setpoints: int = 0
+    decision_to_wire_ms: list[float] = field(default_factory=list)  # decision made -> sent
+    period_ms: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict[str, float]:
+        lat = np.asarray(self.decision_to_wire_ms) if self.decision_to_wire_ms else np.zeros(1)
+        per = np.asarray(self.period_ms) if self.period_ms else np.zeros(1)
+        return {
+            "ticks": self.ticks, "setpoints": self.setpoints,
+            "rate_hz": round(1000.0 / float(np.median(per)), 1) if per.any() else 0.0,
+            "decision_to_wire_median_ms": round(float(np.median(lat)), 2),
+            "decision_to_wire_p99_ms": round(float(np.percentile(lat, 99)), 2),
+        }
+
+
+async def control_loop(
+    link: FlightLink,
+    engagement: Engagement,
+    latest: Callable[[], Decision | None],
+    stop: asyncio.Event,
+    rate_hz: float = 20.0,
+    stats: LoopStats | None = None,
+) -> None:
+    """Tick until ``stop`` is set; then, if in control, zero velocity and leave to Hold.
+
+    Cancellation and errors end the same way (``finally``): the vehicle is never left
+    flying our last command.
+    """
+    period = 1.0 / rate_hz
+    stats = stats if stats is not None else LoopStats()
+    last = time.monotonic()
+    try:
+        while not stop.is_set():
+            t0 = time.monotonic()
+            d = latest()
+            out = engagement.tick(link.snapshot(), d)
+            await link.apply(out)
+            sent = time.monotonic()
+            stats.ticks += 1
+            stats.period_ms.append((t0 - last) * 1000.0)
+            last = t0
+            if out.setpoint is not None:
+                stats.setpoints += 1
+                if d is not None and out.setpoint != (0.0, 0.0, 0.0):
+                    stats.decision_to_wire_ms.append((sent - d.t_s) * 1000.0)
+            try:
+                await asyncio.wait_for(stop.wait(), timeout=max(0.0, period - (time.monotonic() - t0)))
+            except TimeoutError:
+                pass
+    finally:
+        if engagement.state != MONITOR:
+            engagement.state = MONITOR
+            await asyncio.shield(link.apply(Output(MONITOR, setpoint=(0.0, 0.0, 0.0), leave_to="hold",
+                                                   status="midair: stopping, leaving to Hold")))

@@ -1,0 +1,192 @@
+"""PX4 through MAVSDK (``mavsdk`` >= 4, the native binding, asyncio API in ``mavsdk.asyncio``).
+
+The only module that imports ``mavsdk``. It keeps the newest telemetry (draining every
+stream it subscribes to, so nothing queues up) and carries out the engagement logic's
+:class:`app.engagement.Output`: velocity setpoints in the body frame, offboard start and
+stop, resuming a mission, status texts for the ground station.
+
+Facts this relies on (mavsdk 4.1 against PX4 SITL): ``udpin://0.0.0.0:PORT`` (not
+``udpin://:PORT``); ``first_autopilot()`` returns None on timeout; plugins are built as
+``OffboardAsync(system)``; the C++ core logs to stdout unless its log is subscribed to;
+``offboard.stop()`` leaves to Hold; MAVSDK re-sends the last setpoint at 20 Hz by itself.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+from app.engagement import MONITOR, Output, VehicleState
+
+log = logging.getLogger(__name__)
+
+# MAVSDK FlightMode names → the mode names of app.config.FLIGHT_MODES
+_MODES = {
+    "POSCTL": "position", "HOLD": "hold", "MISSION": "mission", "OFFBOARD": "offboard",
+    "ALTCTL": "altitude", "MANUAL": "manual", "STABILIZED": "manual", "ACRO": "manual",
+    "RATTITUDE": "manual", "RETURN_TO_LAUNCH": "return", "LAND": "land", "TAKEOFF": "takeoff",
+}
+
+
+class FlightLinkError(Exception):
+    """The autopilot cannot be reached or refused what it must do."""
+
+
+@dataclass
+class _Telemetry:
+    armed: bool = False
+    in_air: bool = False
+    mode: str = "other"
+    altitude_m: float | None = None
+    connected: bool = False
+    last_rx: float = -math.inf  # monotonic time of the newest position message
+
+
+def _route_core_log() -> None:
+    """Send the C++ core's log lines into Python logging instead of stdout."""
+    from mavsdk import log_subscribe
+
+    core = logging.getLogger("mavsdk.core")
+
+    def handler(level: object, message: str, file: str | None, line: int) -> bool:
+        name = getattr(level, "name", "INFO").upper()
+        core.log(logging.DEBUG if name == "DEBUG" else logging.WARNING if name in ("WARN", "WARNING")
+                 else logging.ERROR if name == "ERR" or name == "ERROR" else logging.INFO, message)
+        return True
+
+    log_subscribe(handler)
+
+
+class Px4Link:
+    """MAVSDK connection to one PX4 autopilot.
+
+    Parameters
+    ----------
+    url
+        MAVSDK connection URL: ``udpin://0.0.0.0:14540`` for SITL, ``serial:///dev/serial0:921600``
+        on the Pi.
+    link_timeout_s
+        No position message for this long means the link is down (MAVSDK's own heartbeat
+        timeout is slower).
+    """
+
+    def __init__(self, url: str, link_timeout_s: float = 0.5) -> None:
+        self.url = url
+        self.link_timeout_s = link_timeout_s
+        self._tel = _Telemetry()
+        self._tasks: list[asyncio.Task[None]] = []
+        self._engaged_before = False
+        self._last_setpoint: tuple[float, float, float] | None = None
+        self.setpoint_log: list[tuple[float, tuple[float, float, float]]] = []  # (t sent, FRD)
+
+    async def connect(self, timeout_s: float = 10.0) -> None:
+        from mavsdk import ComponentType, Configuration
+        from mavsdk.asyncio import Mavsdk
+        from mavsdk.asyncio.plugins.action import ActionAsync
+        from mavsdk.asyncio.plugins.mission import MissionAsync
+        from mavsdk.asyncio.plugins.offboard import OffboardAsync
+        from mavsdk.asyncio.plugins.server_utility import ServerUtilityAsync
+        from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+
+        _route_core_log()
+        self._mavsdk = Mavsdk(Configuration.create_with_component_type(
+            ComponentType.COMPANION_COMPUTER))
+        try:
+            await self._mavsdk.add_any_connection(self.url)
+        except Exception as exc:  # the binding raises its own types for a bad URL
+            raise FlightLinkError(f"connection {self.url!r} rejected: {exc}") from None
+        system = await self._mavsdk.first_autopilot(timeout_s)
+        if system is None:
+            raise FlightLinkError(f"no autopilot answered on {self.url} within {timeout_s:g} s")
+        self._system = system
+        self._telemetry = TelemetryAsync(system)
+        self._offboard = OffboardAsync(system)
+        self._action = ActionAsync(system)
+        self._mission = MissionAsync(system)
+        self._utility = ServerUtilityAsync(system)
+        self._tasks = [
+            asyncio.create_task(self._watch(self._telemetry.subscribe_armed, self._on_armed)),
+            asyncio.create_task(self._watch(self._telemetry.subscribe_in_air, self._on_in_air)),
+            asyncio.create_task(self._watch(self._telemetry.subscribe_flight_mode, self._on_mode)),
+            asyncio.create_task(self._watch(self._telemetry.subscribe_position, self._on_position)),
+            asyncio.create_task(self._watch(system.is_connected_state, self._on_connected)),
+        ]
+        self._tel.connected = True
+
+    async def close(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        self._tasks.clear()
+
+    # ------------------------------------------------------------------ telemetry
+
+    async def _watch(self, subscribe: Callable[[], object], on: Callable[[object], None]) -> None:
+        async for value in subscribe():  # type: ignore[attr-defined]
+            on(value)
+
+    def _on_armed(self, v: object) -> None:
+        self._tel.armed = bool(v)
+
+    def _on_in_air(self, v: object) -> None:
+        self._tel.in_air = bool(v)
+
+    def _on_mode(self, v: object) -> None:
+        self._tel.mode = _MODES.get(getattr(v, "name", str(v)), "other")
+
+    def _on_position(self, p: object) -> None:
+        alt = getattr(p, "relative_altitude_m", math.nan)
+        self._tel.altitude_m = float(alt) if alt is not None and math.isfinite(alt) else None
+        self._tel.last_rx = time.monotonic()
+
+    def _on_connected(self, v: object) -> None:
+        self._tel.connected = bool(v)
+
+    def snapshot(self) -> VehicleState:
+        now = time.monotonic()
+        t = self._tel
+        connected = t.connected and now - t.last_rx <= self.link_timeout_s
+        return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m)
+
+    # ------------------------------------------------------------------ commands
+
+    async def apply(self, out: Output) -> None:
+        """Carry out one tick's output. Errors of single commands are logged, not raised:
+        the engagement logic sees their effect (or its absence) in the telemetry."""
+        from mavsdk.asyncio.plugins.offboard import VelocityBodyYawspeed
+
+        setpoint = out.setpoint
+        if setpoint is None and self._engaged_before and out.state == MONITOR:
+            # Handing control back without leaving offboard ourselves (the pilot did):
+            # replace the setpoint MAVSDK keeps re-sending with zero, which does not change
+            # the mode and leaves nothing stale for a later switch back to Offboard.
+            setpoint = (0.0, 0.0, 0.0)
+        if setpoint is not None:
+            await self._guard("set_velocity_body", self._offboard.set_velocity_body(
+                VelocityBodyYawspeed(setpoint[0], setpoint[1], setpoint[2], 0.0)))
+            self.setpoint_log.append((time.monotonic(), setpoint))
+        if out.start_offboard:
+            await self._guard("offboard.start", self._offboard.start())
+        if out.leave_to is not None:
+            await self._guard("offboard.stop", self._offboard.stop())  # PX4 goes to Hold
+            if out.leave_to == "mission":
+                await self._guard("mission.start_mission", self._mission.start_mission())
+        if out.status:
+            await self._status(out.status)
+        self._engaged_before = out.state != MONITOR
+
+    async def _status(self, text: str) -> None:
+        from mavsdk.asyncio.plugins.server_utility import StatusTextType
+
+        log.info("%s", text)
+        await self._guard("status text", self._utility.send_status_text(StatusTextType.INFO, text[:50]))
+
+    async def _guard(self, what: str, call: Awaitable[object]) -> None:
+        try:
+            await call
+        except Exception as exc:  # MAVSDK raises per-plugin error types
+            log.warning("%s failed: %s", what, exc)

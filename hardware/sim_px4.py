@@ -1,0 +1,307 @@
+"""A MAVLink vehicle that behaves like PX4 in every way midair depends on (pymavlink, UDP).
+
+It stands in for PX4 SITL in the tests and on a desk: MAVSDK talks to it over UDP exactly
+as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
+
+- HEARTBEAT with PX4 custom modes (main mode << 16 | sub mode << 24) and the armed flag;
+  EXTENDED_SYS_STATE with the landed state; position, velocity, attitude, GPS, home and
+  SYS_STATUS streams; AUTOPILOT_VERSION on request; COMMAND_ACK for every command.
+- Offboard is refused unless setpoints are already streaming, and left (offboard-loss
+  failsafe) ``COM_OF_LOSS_T`` s after the last setpoint, to ``loss_mode``.
+- Velocity tracking with a dead time, a first-order lag and an acceleration limit,
+  calibrated on PX4 SITL's SIH quadrotor (first response 0.13–0.23 s after a command;
+  2 m/s commanded → 1 m/s after ~0.7 s; a stop from ~1.5 m/s falls below 0.2 m/s in
+  1.3–2.4 s, drifting 1–1.7 m): dead time 0.15 s and time constant 0.79 s give 1 m/s at
+  0.70 s, 1.74 s to stop and 1.25 m of drift.
+- Body-frame velocity setpoints are yaw-aligned and horizontal, as PX4 applies them.
+- A pilot mode switch (:meth:`pilot_set_mode`), a link cut (:meth:`set_link`) and a
+  mission whose progress advances while the mode is Mission.
+
+It runs in its own thread at ``rate_hz``; everything it received is kept for tests.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as ml  # noqa: E402
+
+# PX4 custom modes: (main, sub). px4_custom_mode.h
+PX4_MODES: dict[str, tuple[int, int]] = {
+    "manual": (1, 0), "altitude": (2, 0), "position": (3, 0), "offboard": (6, 0),
+    "takeoff": (4, 2), "hold": (4, 3), "mission": (4, 4), "return": (4, 5), "land": (4, 6),
+}
+_BY_CODE = {v: k for k, v in PX4_MODES.items()}
+
+DEAD_TIME_S = 0.15
+TAU_S = 0.79
+ACCEL_LIMIT_MPS2 = 4.0
+
+
+@dataclass
+class Received:
+    t: float  # monotonic, s
+    velocity_body: tuple[float, float, float] | None  # forward, right, down m/s
+
+
+@dataclass
+class SimState:
+    armed: bool = True
+    in_air: bool = True
+    mode: str = "position"
+    pos_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, -10.0])  # m, home at 0
+    vel_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s
+    yaw_rad: float = 0.0
+    mission_seq: int = 0
+    mission_count: int = 5
+
+
+class SimPx4:
+    """Start with :meth:`start`, stop with :meth:`stop`. ``gcs_port`` is where MAVSDK listens
+    (``udpin://0.0.0.0:<gcs_port>``)."""
+
+    def __init__(self, gcs_port: int, rate_hz: float = 50.0, of_loss_t_s: float = 1.0,
+                 loss_mode: str = "hold", state: SimState | None = None) -> None:
+        self.gcs_port = gcs_port
+        self.rate_hz = rate_hz
+        self.of_loss_t_s = of_loss_t_s
+        self.loss_mode = loss_mode
+        self.state = state or SimState()
+        self.received: list[Received] = []
+        self.status_texts: list[str] = []
+        self.mode_log: list[tuple[float, str, str]] = []  # (t, mode, why)
+        self.acks: list[tuple[int, int]] = []  # (command, result)
+        self._lock = threading.Lock()
+        self._link = True
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_setpoint_t = -math.inf
+        self._setpoint_body = (0.0, 0.0, 0.0)
+        self._pipeline: deque[tuple[float, tuple[float, float, float]]] = deque()
+        self._applied = (0.0, 0.0, 0.0)  # the command the vehicle is acting on now
+        self._mission_s = 0.0
+        self._conn = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{gcs_port}", source_system=1, source_component=1, dialect="common"
+        )
+
+    # ------------------------------------------------------------------ control from tests
+
+    def start(self) -> SimPx4:
+        self._thread = threading.Thread(target=self._run, name="sim-px4", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._conn.close()
+
+    def pilot_set_mode(self, mode: str) -> None:
+        """The pilot flips the mode switch."""
+        with self._lock:
+            self._set_mode(mode, "pilot")
+
+    def set_link(self, up: bool) -> None:
+        """Cut or restore the radio link both ways."""
+        with self._lock:
+            self._link = up
+
+    @property
+    def mode(self) -> str:
+        with self._lock:
+            return self.state.mode
+
+    def velocity_body(self) -> tuple[float, float, float]:
+        """The vehicle's velocity, forward/right/down m/s."""
+        with self._lock:
+            n, e, d = self.state.vel_ned
+            c, s = math.cos(self.state.yaw_rad), math.sin(self.state.yaw_rad)
+            return (c * n + s * e, -s * n + c * e, d)
+
+    # ------------------------------------------------------------------ loop
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        k = 0
+        t_last = time.monotonic()
+        while not self._stop.is_set():
+            now = time.monotonic()
+            with self._lock:
+                self._receive(now)
+                self._step(now - t_last, now)
+                if self._link:
+                    self._send(k)
+            t_last = now
+            k += 1
+            time.sleep(max(0.0, period - (time.monotonic() - now)))
+
+    def _receive(self, now: float) -> None:
+        while True:
+            try:
+                m = self._conn.recv_match(blocking=False)
+            except (OSError, ConnectionError):
+                return
+            if m is None:
+                return
+            if not self._link:
+                continue
+            kind = m.get_type()
+            if kind == "SET_POSITION_TARGET_LOCAL_NED":
+                self._on_setpoint(m, now)
+            elif kind in ("COMMAND_LONG", "COMMAND_INT"):
+                self._on_command(m, now)
+            elif kind == "STATUSTEXT":
+                self.status_texts.append(m.text)
+            elif kind == "SET_MODE":
+                self._on_set_mode_code(m.custom_mode, now)
+
+    def _on_setpoint(self, m: ml.MAVLink_set_position_target_local_ned_message, now: float) -> None:
+        ignore_vel = m.type_mask & (ml.POSITION_TARGET_TYPEMASK_VX_IGNORE
+                                    | ml.POSITION_TARGET_TYPEMASK_VY_IGNORE
+                                    | ml.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+        self._last_setpoint_t = now
+        if ignore_vel:
+            self.received.append(Received(now, None))
+            return
+        if m.coordinate_frame in (ml.MAV_FRAME_BODY_NED, ml.MAV_FRAME_BODY_FRD,
+                                  ml.MAV_FRAME_BODY_OFFSET_NED):
+            body = (m.vx, m.vy, m.vz)
+        else:  # local NED: express in body (yaw only)
+            c, s = math.cos(self.state.yaw_rad), math.sin(self.state.yaw_rad)
+            body = (c * m.vx + s * m.vy, -s * m.vx + c * m.vy, m.vz)
+        self._setpoint_body = body
+        self.received.append(Received(now, body))
+
+    def _on_command(self, m: object, now: float) -> None:
+        cmd = int(m.command)  # type: ignore[attr-defined]
+        p = [getattr(m, f"param{i}") for i in range(1, 8)]
+        result = ml.MAV_RESULT_ACCEPTED
+        if cmd == ml.MAV_CMD_DO_SET_MODE:
+            result = self._on_set_mode_code((int(p[1]) << 16) | (int(p[2]) << 24), now)
+        elif cmd == ml.MAV_CMD_COMPONENT_ARM_DISARM:
+            self.state.armed = p[0] >= 0.5
+        elif cmd == ml.MAV_CMD_NAV_TAKEOFF:
+            self._set_mode("takeoff", "command")
+        elif cmd == ml.MAV_CMD_NAV_LAND:
+            self._set_mode("land", "command")
+        elif cmd == ml.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            self._set_mode("return", "command")
+        elif cmd == ml.MAV_CMD_MISSION_START:
+            self._set_mode("mission", "command")
+        elif cmd == ml.MAV_CMD_REQUEST_MESSAGE:
+            self._send_requested(int(p[0]))
+        elif cmd in (ml.MAV_CMD_SET_MESSAGE_INTERVAL, ml.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES):
+            if cmd == ml.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+                self._send_requested(ml.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+        else:
+            result = ml.MAV_RESULT_UNSUPPORTED
+        self.acks.append((cmd, result))
+        self._conn.mav.command_ack_send(cmd, result)
+
+    def _on_set_mode_code(self, custom_mode: int, now: float) -> int:
+        main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+        mode = _BY_CODE.get((main, sub)) or _BY_CODE.get((main, 0))
+        if mode is None:
+            return ml.MAV_RESULT_UNSUPPORTED
+        if mode == "offboard" and now - self._last_setpoint_t > self.of_loss_t_s:
+            return ml.MAV_RESULT_DENIED  # PX4: "offboard signal lost" / not streaming yet
+        self._set_mode(mode, "command")
+        return ml.MAV_RESULT_ACCEPTED
+
+    def _set_mode(self, mode: str, why: str) -> None:
+        if mode != self.state.mode:
+            self.state.mode = mode
+            self.mode_log.append((time.monotonic(), mode, why))
+
+    # ------------------------------------------------------------------ dynamics
+
+    def _commanded_body(self, now: float) -> tuple[float, float, float]:
+        st = self.state
+        if st.mode == "offboard":
+            if now - self._last_setpoint_t > self.of_loss_t_s:
+                self._set_mode(self.loss_mode, "offboard loss")
+                return (0.0, 0.0, 0.0)
+            return self._setpoint_body
+        if st.mode == "mission":
+            return (2.0, 0.0, 0.0)
+        if st.mode == "takeoff":
+            return (0.0, 0.0, -1.5)
+        if st.mode == "land":
+            return (0.0, 0.0, 0.7)
+        return (0.0, 0.0, 0.0)  # position, hold, return (simplified)
+
+    def _step(self, dt: float, now: float) -> None:
+        st = self.state
+        if not st.armed or not st.in_air:
+            st.vel_ned = [0.0, 0.0, 0.0]
+            return
+        self._pipeline.append((now, self._commanded_body(now)))
+        while self._pipeline and now - self._pipeline[0][0] >= DEAD_TIME_S:
+            self._applied = self._pipeline.popleft()[1]  # commands act after the dead time
+        target = self._applied
+        c, s = math.cos(st.yaw_rad), math.sin(st.yaw_rad)
+        tn = c * target[0] - s * target[1]
+        te = s * target[0] + c * target[1]
+        goal = (tn, te, target[2])
+        for i in range(3):
+            dv = (goal[i] - st.vel_ned[i]) * (1 - math.exp(-dt / TAU_S))
+            lim = ACCEL_LIMIT_MPS2 * dt
+            st.vel_ned[i] += max(-lim, min(lim, dv))
+            st.pos_ned[i] += st.vel_ned[i] * dt
+        if st.mode == "takeoff" and st.pos_ned[2] <= -10.0:
+            self._set_mode("hold", "takeoff done")
+        if st.mode == "land" and st.pos_ned[2] >= 0.0:
+            st.pos_ned[2] = 0.0
+            st.in_air = False
+        if st.mode == "mission":
+            self._mission_s += dt
+            st.mission_seq = min(st.mission_count - 1, int(self._mission_s / 3.0))  # 3 s a leg
+
+    # ------------------------------------------------------------------ telemetry out
+
+    def _send(self, k: int) -> None:
+        mav = self._conn.mav
+        st = self.state
+        main, sub = PX4_MODES[st.mode]
+        base = ml.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (ml.MAV_MODE_FLAG_SAFETY_ARMED if st.armed else 0)
+        boot_ms = int(time.monotonic() * 1000) & 0xFFFFFFFF
+        lat0, lon0, alt0 = 47.397742, 8.545594, 488.0  # PX4 SITL's default home (Zurich)
+        if k % int(self.rate_hz) == 0:
+            mav.heartbeat_send(ml.MAV_TYPE_QUADROTOR, ml.MAV_AUTOPILOT_PX4, base,
+                               (main << 16) | (sub << 24),
+                               ml.MAV_STATE_ACTIVE if st.armed else ml.MAV_STATE_STANDBY)
+            sensors = 0x3FFFFFFF
+            mav.sys_status_send(sensors, sensors, sensors, 200, 16000, -1, 90, 0, 0, 0, 0, 0, 0)
+            mav.gps_raw_int_send(boot_ms * 1000, 3, int(lat0 * 1e7), int(lon0 * 1e7),
+                                 int(alt0 * 1000), 80, 100, 0, 0, 12)
+            mav.home_position_send(int(lat0 * 1e7), int(lon0 * 1e7), int(alt0 * 1000),
+                                   0, 0, 0, [1, 0, 0, 0], 0, 0, 0)
+            mav.mission_current_send(st.mission_seq)
+        if k % 5 == 0:
+            landed = ml.MAV_LANDED_STATE_IN_AIR if st.in_air else ml.MAV_LANDED_STATE_ON_GROUND
+            mav.extended_sys_state_send(ml.MAV_VTOL_STATE_MC, landed)
+        n, e, d = st.pos_ned
+        vn, ve, vd = st.vel_ned
+        mav.local_position_ned_send(boot_ms, n, e, d, vn, ve, vd)
+        lat = lat0 + n / 111_320.0
+        lon = lon0 + e / (111_320.0 * math.cos(math.radians(lat0)))
+        mav.global_position_int_send(boot_ms, int(lat * 1e7), int(lon * 1e7),
+                                     int((alt0 - d) * 1000), int(-d * 1000),
+                                     int(vn * 100), int(ve * 100), int(vd * 100), 0)
+        mav.attitude_send(boot_ms, 0.0, 0.0, st.yaw_rad, 0.0, 0.0, 0.0)
+
+    def _send_requested(self, msg_id: int) -> None:
+        if msg_id == ml.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            caps = (ml.MAV_PROTOCOL_CAPABILITY_MISSION_INT | ml.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                    | ml.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+                    | ml.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+            self._conn.mav.autopilot_version_send(caps, 1 << 24 | 14 << 16, 0, 0, 0,
+                                                  [0] * 8, [0] * 8, [0] * 8, 0, 0, 1)
