@@ -289,6 +289,10 @@ class FlightConfig:
     offboard_confirm_s: float = param(
         1.0, "the vehicle must report Offboard this soon after we ask, or we give up, s", gt=0
     )
+    max_mode_age_s: float = param(
+        2.0, "a flight mode reported longer ago than this is unknown (PX4 reports it at 1 Hz), s",
+        gt=0,
+    )
     pilot_cooldown_s: float = param(
         10.0, "after the pilot takes control back, do not take over again for this long, s", ge=0
     )

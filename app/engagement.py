@@ -23,9 +23,10 @@ Safety rules held here:
   protect against this process hanging.)
 - Pilot wins: once engaged, any mode other than Offboard means the pilot (or a failsafe)
   took over: stop commanding at once, never re-take control during ``pilot_cooldown_s``.
-- Link loss: the setpoint is cleared to zero at once; after the link returns nothing but
-  zero is sent until a decision made after the reconnection arrives, and if the vehicle is
-  no longer in Offboard we do not take it back.
+- Link loss: the setpoint is cleared to zero at once. After the link returns, nothing but
+  zero is sent until the vehicle has reported its mode anew (the mode in hand predates the
+  outage) and a decision made after the reconnection arrives; if the vehicle is no longer
+  in Offboard (PX4's offboard-loss failsafe, or the pilot) we do not take it back.
 - Every velocity is clamped to ``max_speed_mps``.
 
 Velocities are body frame (forward, right, down), m/s; times are monotonic seconds.
@@ -53,6 +54,7 @@ class VehicleState:
     in_air: bool
     mode: str  # one of app.config.FLIGHT_MODES
     altitude_m: float | None  # above home, m; None or NaN while unknown
+    mode_t_s: float = -math.inf  # when the mode was last reported (PX4: every heartbeat), s
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,7 @@ class Engagement:
         self._cooldown_until = -math.inf
         self._link_was_lost = False
         self._fresh_after = -math.inf  # only decisions made after this may command
+        self._awaiting_mode_since: float | None = None  # link back while in control
         self._shadow_said: str | None = None
 
     # ------------------------------------------------------------------ main
@@ -105,8 +108,22 @@ class Engagement:
         if self._link_was_lost:
             self._link_was_lost = False
             self._fresh_after = v.t_s
-            if self.state != MONITOR and v.mode != "offboard":
-                return self._pilot_took_over(v, f"link back in {v.mode}: not taking control back")
+            self._stale_since = None
+            if self.state != MONITOR:
+                # The mode in hand predates the outage: wait for the vehicle to report it anew.
+                self._awaiting_mode_since = v.t_s
+        if self._awaiting_mode_since is not None:
+            since = self._awaiting_mode_since
+            if v.mode_t_s > since:
+                self._awaiting_mode_since = None
+                if v.mode != "offboard":
+                    return self._pilot_took_over(v, f"link back in {v.mode}: not taking control back")
+            elif v.t_s - since > c.max_mode_age_s:
+                self._awaiting_mode_since = None
+                self._cooldown_until = v.t_s + c.pilot_cooldown_s
+                return self._leave(v, "hold", "midair: link back, mode unknown: leaving to Hold")
+            else:
+                return Output(self.state, setpoint=ZERO)
 
         cmd = d.command if d is not None and self._usable(d, v.t_s) else None
         if self.state == MONITOR:
@@ -179,6 +196,8 @@ class Engagement:
             return f"below {c.min_takeover_altitude_m:g} m"
         if v.mode not in c.takeover_modes:
             return f"mode {v.mode} is not one midair may take over from"
+        if v.t_s - v.mode_t_s > c.max_mode_age_s:
+            return "flight mode not reported recently"
         return None
 
     def _pilot_took_over(self, v: VehicleState, text: str) -> Output:

@@ -44,6 +44,7 @@ class _Telemetry:
     altitude_m: float | None = None
     connected: bool = False
     last_rx: float = -math.inf  # monotonic time of the newest position message
+    mode_t: float = -math.inf  # monotonic time of the newest flight-mode report (each heartbeat)
 
 
 def _route_core_log() -> None:
@@ -137,6 +138,7 @@ class Px4Link:
 
     def _on_mode(self, v: object) -> None:
         self._tel.mode = _MODES.get(getattr(v, "name", str(v)), "other")
+        self._tel.mode_t = time.monotonic()
 
     def _on_position(self, p: object) -> None:
         alt = getattr(p, "relative_altitude_m", math.nan)
@@ -150,7 +152,7 @@ class Px4Link:
         now = time.monotonic()
         t = self._tel
         connected = t.connected and now - t.last_rx <= self.link_timeout_s
-        return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m)
+        return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m, t.mode_t)
 
     # ------------------------------------------------------------------ commands
 

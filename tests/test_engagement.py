@@ -15,7 +15,7 @@ DT = 0.05  # control period, s
 
 def vs(t: float, mode: str = "position", *, connected: bool = True, armed: bool = True,
        in_air: bool = True, alt: float | None = 10.0) -> VehicleState:
-    return VehicleState(t, connected, armed, in_air, mode, alt)
+    return VehicleState(t, connected, armed, in_air, mode, alt, mode_t_s=t)
 
 
 def engaged(e: Engagement, t: float = 0.0, mode: str = "position") -> float:
@@ -37,10 +37,11 @@ def test_takes_over_only_when_armed_airborne_high_enough_and_in_an_allowed_mode(
         (vs(0, alt=math.nan), "altitude unknown"),
         (vs(0, mode="manual"), "mode manual is not one"),
         (vs(0, mode="land"), "mode land is not one"),
+        (VehicleState(5.0, True, True, True, "position", 10.0, mode_t_s=2.0), "not reported recently"),
     ]
     for state, reason in refusals:
         e = Engagement(FlightConfig(), 3.0)
-        out = e.tick(state, Decision(EVADE_CMD, 0.0))
+        out = e.tick(state, Decision(EVADE_CMD, state.t_s))
         assert out.state == MONITOR and not out.start_offboard and out.setpoint is None
         assert out.status is not None and reason in out.status
     for mode in ("position", "hold", "mission"):
@@ -117,28 +118,46 @@ def test_refused_offboard_gives_up() -> None:
     assert "refused" in (outs[gave_up].status or "") and 19 <= gave_up <= 21
 
 
-def test_link_loss_clears_the_setpoint_and_waits_for_a_fresh_decision() -> None:
+def test_link_loss_clears_the_setpoint_and_waits_for_a_fresh_mode_and_decision() -> None:
     e = Engagement(FlightConfig(), 3.0)
     t = engaged(e)
-    t += DT
-    lost = e.tick(vs(t, "offboard", connected=False), Decision(EVADE_CMD, t))
+    t_loss = t + DT
+    lost = e.tick(vs(t_loss, "offboard", connected=False), Decision(EVADE_CMD, t_loss))
     assert lost.setpoint == (0.0, 0.0, 0.0) and "link lost" in (lost.status or "")
-    # link back, still offboard; the decision in hand predates the reconnection
-    t += 0.04
-    old = Decision(EVADE_CMD, t - 0.02)
-    assert e.tick(vs(t, "offboard"), old).setpoint == (0.0, 0.0, 0.0)
+    # link back; the mode in hand was reported before the outage: zero until it is reported anew
+    t = t_loss + 0.3
+    stale_mode = VehicleState(t, True, True, True, "offboard", 10.0, mode_t_s=t_loss - 0.5)
+    assert e.tick(stale_mode, Decision(EVADE_CMD, t)).setpoint == (0.0, 0.0, 0.0)
+    # mode re-reported (still Offboard), but the decision in hand predates the reconnection
+    t += DT
+    assert e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t - 0.33)).setpoint == (0.0, 0.0, 0.0)
     t += DT
     assert e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t)).setpoint == (0.0, 2.0, -2.0)
+
+
+def test_link_back_with_the_mode_never_reported_leaves_to_hold() -> None:
+    e = Engagement(FlightConfig(max_mode_age_s=2.0), 3.0)
+    t = engaged(e)
+    e.tick(vs(t + DT, "offboard", connected=False), None)
+    outs = [e.tick(VehicleState(t + 0.2 + k * DT, True, True, True, "offboard", 10.0, mode_t_s=t),
+                   Decision(EVADE_CMD, t + 0.2 + k * DT)) for k in range(60)]
+    leave = next(i for i, o in enumerate(outs) if o.leave_to)
+    assert outs[leave].leave_to == "hold" and 39 <= leave <= 41
+    assert all(o.setpoint == (0.0, 0.0, 0.0) for o in outs[:leave])
 
 
 def test_link_back_in_another_mode_is_not_taken_back() -> None:
     e = Engagement(FlightConfig(), 3.0)
     t = engaged(e)
     e.tick(vs(t + DT, "offboard", connected=False), Decision(EVADE_CMD, t + DT))
-    out = e.tick(vs(t + 2.0, "return"), Decision(EVADE_CMD, t + 2.0))  # PX4 failsafe: RTL
+    # first tick back: the old mode, not yet re-reported
+    held = e.tick(VehicleState(t + 2.0, True, True, True, "offboard", 10.0, mode_t_s=t),
+                  Decision(EVADE_CMD, t + 2.0))
+    assert held.setpoint == (0.0, 0.0, 0.0)
+    out = e.tick(vs(t + 2.1, "return"), Decision(EVADE_CMD, t + 2.1))  # PX4 failsafe: RTL
     assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
     assert "not taking control back" in (out.status or "")
-    assert not e.tick(vs(t + 2.1, "position"), Decision(EVADE_CMD, t + 2.1)).start_offboard
+    assert not e.tick(vs(t + 2.2, "position"), Decision(EVADE_CMD, t + 2.2)).start_offboard
 
 
 def test_landing_while_engaged_hands_off() -> None:

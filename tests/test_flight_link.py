@@ -163,3 +163,64 @@ async def test_offboard_loss_failsafe_of_the_vehicle(rig: tuple[SimPx4, Px4Link]
     with pytest.raises(OffboardError):
         await link._offboard.start()  # no setpoint yet
     assert sim.mode == "position"
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(60)
+async def test_release_resumes_the_mission() -> None:
+    port = free_udp_port()
+    sim = SimPx4(port, state=SimState(mode="mission")).start()
+    link = Px4Link(f"udpin://0.0.0.0:{port}")
+    try:
+        await link.connect(timeout_s=10.0)
+        await wait_for(lambda: link.snapshot().mode == "mission" and link.snapshot().in_air
+                       and link.snapshot().armed)
+        slot = Slot()
+        eng, stop, task, _ = await run_loop(link, slot)
+        for _ in range(30):
+            slot.set(Command(EVADE, 0.0, -2.0, 0.0, 1, "test"))
+            await asyncio.sleep(0.033)
+        assert sim.mode == "offboard"
+        for _ in range(40):
+            slot.set(Command(NONE))
+            await asyncio.sleep(0.033)
+        await wait_for(lambda: sim.mode == "mission")
+        stop.set()
+        await task
+    finally:
+        await link.close()
+        sim.stop()
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(60)
+async def test_link_loss_then_reconnect_never_resumes_a_stale_command(
+        rig: tuple[SimPx4, Px4Link]) -> None:
+    """The link drops mid-evasion: the vehicle's own offboard-loss failsafe fires after
+    COM_OF_LOSS_T, and when the link returns midair does not take it back (the pilot or
+    failsafe has it), and the setpoint MAVSDK re-sends is zero, not the old evasion."""
+    sim, link = rig
+    slot = Slot()
+    eng, stop, task, _ = await run_loop(link, slot)
+    for _ in range(30):
+        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
+        await asyncio.sleep(0.033)
+    assert sim.mode == "offboard"
+    sim.set_link(False)
+    t_cut = time.monotonic()
+    await wait_for(lambda: sim.mode == "hold", timeout=3.0)
+    failsafe_after = time.monotonic() - t_cut
+    assert 0.9 <= failsafe_after <= 1.6  # COM_OF_LOSS_T = 1 s
+    for _ in range(15):  # perception keeps asking for the evasion during the outage
+        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
+        await asyncio.sleep(0.033)
+    sim.set_link(True)
+    t_back = time.monotonic()
+    for _ in range(60):
+        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
+        await asyncio.sleep(0.033)
+    assert sim.mode == "hold", (sim.mode_log, sim.acks[-6:])  # not re-taken
+    after = [r.velocity_body for r in sim.received if r.t > t_back + 0.2]
+    assert after and all(v == (0.0, 0.0, 0.0) for v in after)
+    stop.set()
+    await task
