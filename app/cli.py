@@ -63,6 +63,10 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--soak", type=int, default=0, metavar="N",
                    help="also replay N frames and report memory (e.g. 10000)")
     b.add_argument("--json", action="store_true", help="last line: one JSON object")
+    b.add_argument("--link", action="store_true",
+                   help="instead: the offboard path against the simulated PX4 over UDP "
+                   "(setpoint rate, decision-to-wire latency)")
+    b.add_argument("--seconds", type=float, default=10.0, help="with --link: how long, s")
     with_config(b)
 
     c = sub.add_parser("config", help="print the configuration as commented YAML "
@@ -159,6 +163,12 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
 def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from app.bench import format_bench, run_bench
 
+    if args.link:
+        from app.linkbench import run_link_bench
+
+        r = run_link_bench(cfg, seconds=args.seconds)
+        print(json.dumps(r, indent=None if args.json else 2))
+        return 0
     if args.frames < 30:
         raise UsageError(f"--frames {args.frames}: must be at least 30")
     result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak)

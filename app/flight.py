@@ -49,8 +49,10 @@ async def control_loop(
     stop: asyncio.Event,
     rate_hz: float = 20.0,
     stats: LoopStats | None = None,
+    wake: asyncio.Event | None = None,
 ) -> None:
-    """Tick until ``stop`` is set; then, if in control, zero velocity and leave to Hold.
+    """Tick at ``rate_hz`` and at once whenever ``wake`` is set (a new decision), until
+    ``stop`` is set; then, if in control, zero velocity and leave to Hold.
 
     Cancellation and errors end the same way (``finally``): the vehicle is never left
     flying our last command.
@@ -72,12 +74,25 @@ async def control_loop(
                 stats.setpoints += 1
                 if d is not None and out.setpoint != (0.0, 0.0, 0.0):
                     stats.decision_to_wire_ms.append((sent - d.t_s) * 1000.0)
-            try:
-                await asyncio.wait_for(stop.wait(), timeout=max(0.0, period - (time.monotonic() - t0)))
-            except TimeoutError:
-                pass
+            await _sleep_until(max(0.0, period - (time.monotonic() - t0)), stop, wake)
     finally:
         if engagement.state != MONITOR:
             engagement.state = MONITOR
             await asyncio.shield(link.apply(Output(MONITOR, setpoint=(0.0, 0.0, 0.0), leave_to="hold",
                                                    status="midair: stopping, leaving to Hold")))
+
+
+async def _sleep_until(timeout: float, stop: asyncio.Event, wake: asyncio.Event | None) -> None:
+    """Return after ``timeout`` s, or as soon as ``stop`` or ``wake`` is set (``wake`` is
+    cleared on the way out)."""
+    waiters = [asyncio.ensure_future(stop.wait())]
+    if wake is not None:
+        waiters.append(asyncio.ensure_future(wake.wait()))
+    try:
+        await asyncio.wait(waiters, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waiters:
+            w.cancel()
+        if wake is not None:
+            wake.clear()
+
