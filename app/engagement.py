@@ -16,7 +16,9 @@ Safety rules held here:
 
 - Take over only when armed, in air, at or above ``min_takeover_altitude_m``, connected,
   in one of ``takeover_modes`` and not in a pilot cooldown. Shadow mode never commands.
-- A setpoint is set before offboard is requested (PX4 refuses Offboard without one).
+- Setpoints stream before offboard is requested: while armed and in air in guard mode,
+  zero velocity is streamed all the time (PX4 accepts Offboard only after a second of
+  setpoints; outside Offboard it ignores them).
 - Dead-man: every setpoint comes from a decision younger than ``max_decision_age_ms``;
   otherwise zero velocity; stale for ``stale_release_s``: leave offboard to Hold. (MAVSDK
   re-sends the last setpoint by itself, so PX4's own offboard-loss failsafe does not
@@ -42,6 +44,7 @@ from app.decision import NONE, Command
 
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
 ZERO = (0.0, 0.0, 0.0)
+OFFBOARD_RETRY_S = 0.25  # while requesting, ask PX4 again this often, s
 
 
 @dataclass(frozen=True)
@@ -98,6 +101,7 @@ class Engagement:
         self._fresh_after = -math.inf  # only decisions made after this may command
         self._awaiting_mode_since: float | None = None  # link back while in control
         self._shadow_said: str | None = None
+        self._last_request = -math.inf
 
     # ------------------------------------------------------------------ main
 
@@ -135,13 +139,18 @@ class Engagement:
         if not v.armed or not v.in_air:
             self.state = MONITOR
             return Output(MONITOR, status="midair: vehicle landed or disarmed, hands off")
+        retry = False
         if self.state == REQUESTING:
             if v.mode == "offboard":
                 self.state = ENGAGED
             elif v.t_s - self._since > c.offboard_confirm_s:
                 self.state = MONITOR
-                self._cooldown_until = v.t_s + c.pilot_cooldown_s
-                return Output(MONITOR, status=f"midair: offboard refused (still {v.mode})")
+                self._cooldown_until = v.t_s + c.offboard_confirm_s  # back off, then try again
+                return Output(MONITOR, setpoint=ZERO,
+                              status=f"midair: offboard refused (still {v.mode})")
+            elif v.t_s - self._last_request >= OFFBOARD_RETRY_S:
+                retry = True  # PX4 may have refused an early request; ask again
+                self._last_request = v.t_s
 
         # dead-man: stale decisions stream zero, and for too long, leave to Hold
         if cmd is None:
@@ -159,23 +168,28 @@ class Engagement:
                 return self._leave(v, self._return_to, f"midair: clear, back to {self._return_to}")
             return Output(self.state, setpoint=ZERO)
         self._calm_since = None
-        return Output(self.state, setpoint=self._velocity(cmd))
+        return Output(self.state, setpoint=self._velocity(cmd), start_offboard=retry)
 
     # ------------------------------------------------------------------ states
 
     def _monitor(self, v: VehicleState, cmd: Command | None) -> Output:
+        # Keep the offboard path warm: PX4 enters Offboard only after setpoints have streamed
+        # for over a second (PX4 user guide, "Offboard Mode"), which a mid-air encounter does
+        # not leave. Zero velocity is ignored outside Offboard and means "hold" inside it.
+        warm = ZERO if self.cfg.mode == "guard" and v.armed and v.in_air else None
         if cmd is None or cmd.action == NONE:
             self._shadow_said = None
-            return Output(MONITOR)
+            return Output(MONITOR, setpoint=warm)
         why_not = self._may_not_take_over(v)
         if why_not:
-            return Output(MONITOR, status=f"midair: would {cmd.action} but {why_not}")
+            return Output(MONITOR, setpoint=warm, status=f"midair: would {cmd.action} but {why_not}")
         if self.cfg.mode == "shadow":
             text = f"midair (shadow): would {cmd.action} - {cmd.reason}"
             said, self._shadow_said = self._shadow_said, cmd.action
             return Output(MONITOR, status=text if said != cmd.action else None)
         self.state = REQUESTING
         self._since = v.t_s
+        self._last_request = v.t_s
         self._calm_since = None
         self._stale_since = None
         self._return_to = "mission" if v.mode == "mission" else "hold"

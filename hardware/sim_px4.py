@@ -6,8 +6,10 @@ as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
 - HEARTBEAT with PX4 custom modes (main mode << 16 | sub mode << 24) and the armed flag;
   EXTENDED_SYS_STATE with the landed state; position, velocity, attitude, GPS, home and
   SYS_STATUS streams; AUTOPILOT_VERSION on request; COMMAND_ACK for every command.
-- Offboard is refused unless setpoints are already streaming, and left (offboard-loss
-  failsafe) ``COM_OF_LOSS_T`` s after the last setpoint, to ``loss_mode``.
+- Offboard is refused unless setpoints have been streaming for over ``prestream_s`` (1 s:
+  "PX4 enables offboard control only after receiving the signal for more than a second",
+  PX4 user guide, Offboard Mode), and left (offboard-loss failsafe) ``COM_OF_LOSS_T`` s
+  after the last setpoint, to ``loss_mode``.
 - Velocity tracking with a dead time, a first-order lag and an acceleration limit,
   calibrated on PX4 SITL's SIH quadrotor (first response 0.13–0.23 s after a command;
   2 m/s commanded → 1 m/s after ~0.7 s; a stop from ~1.5 m/s falls below 0.2 m/s in
@@ -68,7 +70,9 @@ class SimPx4:
     (``udpin://0.0.0.0:<gcs_port>``)."""
 
     def __init__(self, gcs_port: int, rate_hz: float = 50.0, of_loss_t_s: float = 1.0,
-                 loss_mode: str = "hold", state: SimState | None = None) -> None:
+                 loss_mode: str = "hold", state: SimState | None = None,
+                 prestream_s: float = 1.0) -> None:
+        self.prestream_s = prestream_s
         self.gcs_port = gcs_port
         self.rate_hz = rate_hz
         self.of_loss_t_s = of_loss_t_s
@@ -83,6 +87,7 @@ class SimPx4:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_setpoint_t = -math.inf
+        self._stream_since = math.inf  # start of the current unbroken setpoint stream
         self._setpoint_body = (0.0, 0.0, 0.0)
         self._pipeline: deque[tuple[float, tuple[float, float, float]]] = deque()
         self._applied = (0.0, 0.0, 0.0)  # the command the vehicle is acting on now
@@ -167,6 +172,8 @@ class SimPx4:
         ignore_vel = m.type_mask & (ml.POSITION_TARGET_TYPEMASK_VX_IGNORE
                                     | ml.POSITION_TARGET_TYPEMASK_VY_IGNORE
                                     | ml.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+        if now - self._last_setpoint_t > self.of_loss_t_s:
+            self._stream_since = now  # a new stream begins
         self._last_setpoint_t = now
         if ignore_vel:
             self.received.append(Received(now, None))
@@ -211,8 +218,9 @@ class SimPx4:
         mode = _BY_CODE.get((main, sub)) or _BY_CODE.get((main, 0))
         if mode is None:
             return ml.MAV_RESULT_UNSUPPORTED
-        if mode == "offboard" and now - self._last_setpoint_t > self.of_loss_t_s:
-            return ml.MAV_RESULT_DENIED  # PX4: "offboard signal lost" / not streaming yet
+        if mode == "offboard" and (now - self._last_setpoint_t > self.of_loss_t_s
+                                   or now - self._stream_since < self.prestream_s):
+            return ml.MAV_RESULT_DENIED  # PX4: offboard signal not (yet) valid
         self._set_mode(mode, "command")
         return ml.MAV_RESULT_ACCEPTED
 

@@ -6,7 +6,15 @@ import math
 
 from app.config import FlightConfig
 from app.decision import EVADE, NONE, STOP, Command
-from app.engagement import ENGAGED, MONITOR, REQUESTING, Decision, Engagement, VehicleState
+from app.engagement import (
+    ENGAGED,
+    MONITOR,
+    REQUESTING,
+    ZERO,
+    Decision,
+    Engagement,
+    VehicleState,
+)
 
 EVADE_CMD = Command(EVADE, 0.0, 2.0, -2.0, 1, "object 1 at 0.9 m")
 CALM = Command(NONE)
@@ -42,7 +50,7 @@ def test_takes_over_only_when_armed_airborne_high_enough_and_in_an_allowed_mode(
     for state, reason in refusals:
         e = Engagement(FlightConfig(), 3.0)
         out = e.tick(state, Decision(EVADE_CMD, state.t_s))
-        assert out.state == MONITOR and not out.start_offboard and out.setpoint is None
+        assert out.state == MONITOR and not out.start_offboard and out.setpoint in (None, ZERO)
         assert out.status is not None and reason in out.status
     for mode in ("position", "hold", "mission"):
         assert Engagement(FlightConfig(), 3.0).tick(vs(0, mode), Decision(EVADE_CMD, 0.0)).start_offboard
@@ -51,7 +59,7 @@ def test_takes_over_only_when_armed_airborne_high_enough_and_in_an_allowed_mode(
 def test_shadow_mode_never_commands_and_says_what_it_would_do_once() -> None:
     e = Engagement(FlightConfig(mode="shadow"), 3.0)
     outs = [e.tick(vs(k * DT), Decision(EVADE_CMD, k * DT)) for k in range(5)]
-    assert all(o.setpoint is None and not o.start_offboard for o in outs)
+    assert all(o.setpoint is None and not o.start_offboard for o in outs)  # not even warm-up
     assert [o.status is not None for o in outs] == [True, False, False, False, False]
     assert "would evade" in (outs[0].status or "")
 
@@ -102,20 +110,27 @@ def test_pilot_mode_change_wins_and_starts_a_cooldown() -> None:
     out = e.tick(vs(t + DT, "position"), Decision(EVADE_CMD, t + DT))
     assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
     assert "pilot switched" in (out.status or "")
-    # still threatened, but the pilot has it: no take-over for 10 s
+    # still threatened, but the pilot has it: no take-over for 10 s (zero keeps the path warm)
     for k in range(2, 150):
         o = e.tick(vs(t + k * DT, "position"), Decision(EVADE_CMD, t + k * DT))
-        assert not o.start_offboard and o.setpoint is None
+        assert not o.start_offboard and o.setpoint in (None, ZERO)
     later = t + 10.5
     assert e.tick(vs(later, "position"), Decision(EVADE_CMD, later)).start_offboard
 
 
-def test_refused_offboard_gives_up() -> None:
+def test_refused_offboard_is_asked_again_then_given_up() -> None:
     e = Engagement(FlightConfig(offboard_confirm_s=1.0), 3.0)
     e.tick(vs(0.0), Decision(EVADE_CMD, 0.0))
     outs = [e.tick(vs(k * DT, "position"), Decision(EVADE_CMD, k * DT)) for k in range(1, 30)]
     gave_up = next(i for i, o in enumerate(outs) if o.state == MONITOR)
     assert "refused" in (outs[gave_up].status or "") and 19 <= gave_up <= 21
+    assert 3 <= sum(o.start_offboard for o in outs[:gave_up]) <= 4  # every 0.25 s
+    # a refusal is not the pilot: after a back-off of offboard_confirm_s it tries again
+    t_gave_up = (gave_up + 1) * DT
+    t = t_gave_up + 0.5
+    assert not e.tick(vs(t, "position"), Decision(EVADE_CMD, t)).start_offboard
+    t = t_gave_up + 1.05
+    assert e.tick(vs(t, "position"), Decision(EVADE_CMD, t)).start_offboard
 
 
 def test_link_loss_clears_the_setpoint_and_waits_for_a_fresh_mode_and_decision() -> None:
@@ -155,9 +170,16 @@ def test_link_back_in_another_mode_is_not_taken_back() -> None:
                   Decision(EVADE_CMD, t + 2.0))
     assert held.setpoint == (0.0, 0.0, 0.0)
     out = e.tick(vs(t + 2.1, "return"), Decision(EVADE_CMD, t + 2.1))  # PX4 failsafe: RTL
-    assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
+    assert out.state == MONITOR and out.setpoint in (None, ZERO) and not out.start_offboard
     assert "not taking control back" in (out.status or "")
     assert not e.tick(vs(t + 2.2, "position"), Decision(EVADE_CMD, t + 2.2)).start_offboard
+
+
+def test_guard_mode_keeps_the_offboard_path_warm_only_when_flying() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    assert e.tick(vs(0.0), None).setpoint == ZERO
+    assert e.tick(vs(0.1, in_air=False), None).setpoint is None
+    assert e.tick(vs(0.2, armed=False), None).setpoint is None
 
 
 def test_landing_while_engaged_hands_off() -> None:

@@ -4,6 +4,7 @@ the real engagement logic, real MAVLink on the wire."""
 from __future__ import annotations
 
 import asyncio
+import math
 import socket
 import time
 from collections.abc import AsyncIterator
@@ -72,6 +73,7 @@ async def run_loop(link: Px4Link, slot: Slot, cfg: FlightConfig | None = None): 
     stop = asyncio.Event()
     stats = LoopStats()
     task = asyncio.create_task(control_loop(link, eng, slot.get, stop, rate_hz=20.0, stats=stats))
+    await asyncio.sleep(1.2)  # midair runs all along: its zero setpoints warm the offboard path
     return eng, stop, task, stats
 
 
@@ -104,6 +106,7 @@ async def test_evasion_reaches_the_vehicle_in_each_direction_then_hands_back(
     assert any(v[1] == pytest.approx(right) and v[2] == pytest.approx(down) for v in got)
     fwd, r_now, d_now = sim.velocity_body()
     assert r_now * right > 0 and d_now * down > 0  # the vehicle is moving that way
+    assert any(t.startswith("midair: evade") for t in sim.status_texts)  # the pilot is told
     await feed(Command(NONE), 1.5)
     await wait_for(lambda: sim.mode == "hold")  # started in Position: back to Hold
     stop.set()
@@ -154,15 +157,21 @@ async def test_stalled_perception_stops_then_holds(rig: tuple[SimPx4, Px4Link]) 
 
 @pytest.mark.asyncio
 @pytest.mark.timeout(60)
-async def test_offboard_loss_failsafe_of_the_vehicle(rig: tuple[SimPx4, Px4Link]) -> None:
-    """The vehicle itself: without setpoints PX4 refuses Offboard, and leaves it 1 s after
-    they stop (our stand-in must do this, or the dead-man tests prove nothing)."""
+async def test_vehicle_accepts_offboard_only_after_a_second_of_setpoints(rig: tuple[SimPx4, Px4Link]) -> None:
+    """The stand-in itself, as PX4: Offboard is refused without setpoints and until they have
+    streamed for a second (the link-loss test covers leaving it 1 s after they stop)."""
     sim, link = rig
-    from mavsdk.asyncio.plugins.offboard import OffboardError
+    from mavsdk.asyncio.plugins.offboard import OffboardError, VelocityBodyYawspeed
 
     with pytest.raises(OffboardError):
         await link._offboard.start()  # no setpoint yet
+    await link._offboard.set_velocity_body(VelocityBodyYawspeed(0.0, 0.0, 0.0, 0.0))
+    with pytest.raises(OffboardError):
+        await link._offboard.start()  # setpoints for well under a second
     assert sim.mode == "position"
+    await asyncio.sleep(1.2)  # MAVSDK keeps streaming the setpoint
+    await link._offboard.start()
+    assert sim.mode == "offboard"
 
 
 @pytest.mark.asyncio
@@ -224,3 +233,34 @@ async def test_link_loss_then_reconnect_never_resumes_a_stale_command(
     assert after and all(v == (0.0, 0.0, 0.0) for v in after)
     stop.set()
     await task
+
+
+def test_vehicle_dynamics_match_px4_sitl() -> None:
+    """The stand-in's velocity response against the figures measured on PX4 SITL (SIH)."""
+    sim = SimPx4(free_udp_port(), state=SimState(mode="offboard"))
+    try:
+        dt, t = 0.02, 0.0
+        sim._last_setpoint_t = math.inf  # setpoints "streaming" (no offboard loss here)
+        sim._setpoint_body = (2.0, 0.0, 0.0)
+        first_move = None
+        while t < 0.7 - 1e-9:
+            t += dt
+            sim._step(dt, t)
+            if first_move is None and sim.state.vel_ned[0] > 0.01:
+                first_move = t
+        assert first_move is not None and 0.13 <= first_move <= 0.23
+        assert 0.85 <= sim.state.vel_ned[0] <= 1.15  # ~1 m/s after 0.7 s
+        while t < 5.0:  # settle at 1.5 m/s, then stop
+            t += dt
+            sim._setpoint_body = (1.5, 0.0, 0.0)
+            sim._step(dt, t)
+        x0, t_stop = sim.state.pos_ned[0], t
+        sim._setpoint_body = (0.0, 0.0, 0.0)
+        while sim.state.vel_ned[0] >= 0.2:
+            t += dt
+            sim._step(dt, t)
+        assert 1.3 <= t - t_stop <= 2.4
+        assert 1.0 <= sim.state.pos_ned[0] - x0 <= 1.7
+    finally:
+        sim.stop()
+
