@@ -264,6 +264,13 @@ FLIGHT_MODES = ("position", "hold", "mission", "altitude", "manual", "offboard",
 class FlightConfig:
     """Engagement with the autopilot: when midair may take control and how it gives it back."""
 
+    connection: str = param(
+        "serial:///dev/serial0:921600",
+        "MAVSDK connection URL: the Pi's UART to TELEM2; udpin://0.0.0.0:14540 for PX4 SITL",
+    )
+    connect_timeout_s: float = param(
+        10.0, "give up (exit, systemd retries) when no autopilot answers within this, s", gt=0
+    )
     mode: str = param(
         "guard",
         "guard: monitor and intervene; shadow: never command, only log what it would do",

@@ -49,6 +49,7 @@ async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) 
         wake = asyncio.Event()  # perception sets it with each new decision
         task = asyncio.create_task(control_loop(link, eng, lambda: latest[0], stop, rate_hz, stats,
                                                 wake))
+        await asyncio.sleep(1.5)  # running all along: zero setpoints warm PX4's offboard path
         made: dict[float, float] = {}
         k = 0
         t_end = time.monotonic() + seconds

@@ -264,3 +264,11 @@ def test_vehicle_dynamics_match_px4_sitl() -> None:
     finally:
         sim.stop()
 
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(30)
+async def test_malformed_connection_url_is_a_clear_error() -> None:
+    link = Px4Link("udpin://:14540")  # MAVSDK wants an address: udpin://0.0.0.0:14540
+    with pytest.raises(FlightLinkError, match="udpin://:14540"):
+        await link.connect(timeout_s=1.0)
