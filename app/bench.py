@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import resource
+from typing import cast
 
 import cv2
 import numpy as np
@@ -115,8 +116,8 @@ def _stats(v: np.ndarray) -> dict[str, float]:
 
 
 def format_bench(r: dict[str, object]) -> str:
-    win, full = r["windows"], r["full_frame"]
-    assert isinstance(win, dict) and isinstance(full, dict)
+    win = cast(dict[str, dict[str, float]], r["windows"])
+    full = cast(dict[str, dict[str, float]], r["full_frame"])
     lines = [
         f"stages 1-3 on {r['frame_size']} synthetic frames, {r['opencv_threads']} OpenCV thread, "
         f"{r['frames_timed']} frames per variant",

@@ -139,10 +139,9 @@ class MotionDetector:
         timings: dict[str, float] = {}
 
         hist = _grey_histogram(gray)
-        if self._cur is None:
+        if self._cur is None or self._hist_cur is None:
             self._start(gray, hist)
             return DetectionResult(None, "warmup", None, 0, 0, timings)
-        assert self._hist_cur is not None
         if cv2.compareHist(self._hist_cur, hist, cv2.HISTCMP_CORREL) < self.cfg.scene_cut_correlation:
             log.info("scene_cut", "scene cut detected: detector reset")
             self.reset()
@@ -318,15 +317,15 @@ class MotionDetector:
             )
         if not self._has_prev:
             return None, "warmup"  # the first frame has no previous frame
-        if prev_diff is None and next_diff is None:
-            return None, "no_homography"
         if prev_diff is None or next_diff is None:
-            merged, status = (prev_diff if next_diff is None else next_diff), "one_sided"
+            only = prev_diff if prev_diff is not None else next_diff
+            if only is None:
+                return None, "no_homography"
+            merged, status = only, "one_sided"
         elif self.cfg.combine == "min":
             merged, status = cv2.min(prev_diff, next_diff), "ok"
         else:
             merged, status = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0), "ok"
-        assert merged is not None
         b = self.cfg.border_px
         if b:
             merged[:b, :] = 0

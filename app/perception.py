@@ -72,7 +72,7 @@ class Perception:
     def push(self, frame: Frame) -> PerceptionResult | None:
         t0 = time.perf_counter()
         grey = to_grey(frame.color)
-        exclude = [tr.box for tr in self.tracker.confirmed]
+        exclude = self.tracker.confirmed_boxes()
         det = self.detector.push(grey, exclude)
         t1 = time.perf_counter()
         current, self._pending = self._pending, frame

@@ -88,6 +88,10 @@ class Tracker:
         """Drop every track (scene cut). IDs keep counting up: a new shot has new objects."""
         self._tracks.clear()
 
+    def confirmed_boxes(self) -> list[tuple[float, float, float, float]]:
+        """Boxes (x, y, w, h px) of the confirmed tracks, cheaply (no reports built)."""
+        return [_box(t) for t in self._tracks if t.track_id]
+
     @property
     def confirmed(self) -> list[TrackReport]:
         return [self._report(t) for t in self._tracks if t.track_id]
@@ -197,10 +201,17 @@ class Tracker:
     @staticmethod
     def _report(t: _Track) -> TrackReport:
         x, y = t.xy
-        w, h = t.box_wh
         return TrackReport(
             track_id=t.track_id, x=x, y=y, vx=float(t.kf.x[1, 0]), vy=float(t.kf.x[3, 0]),
-            box=(x - w / 2, y - h / 2, w, h), matched=t.cluster is not None,
+            box=_box(t), matched=t.cluster is not None,
             last_seen_s=t.last_seen_s, hits=t.hits,
             cluster=t.cluster, trail=tuple(t.trail),
         )
+
+
+def _box(t: _Track) -> tuple[float, float, float, float]:
+    """The track's box (x, y, w, h px): its last cluster's size, centred on the filter."""
+    x, y = t.xy
+    w, h = t.box_wh
+    return (x - w / 2, y - h / 2, w, h)
+
