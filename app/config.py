@@ -273,8 +273,16 @@ class FlightConfig:
     )
     mode: str = param(
         "guard",
-        "guard: monitor and intervene; shadow: never command, only log what it would do",
-        choices=("guard", "shadow"),
+        "guard: monitor and intervene; shadow: never command, only log what it would do; "
+        "test-flight: the paper's experiment (take off, fly forward, evade, hold)",
+        choices=("guard", "shadow", "test-flight"),
+    )
+    test_altitude_m: float = param(5.0, "test-flight: take-off altitude above home, m", gt=0)
+    forward_speed_mps: float = param(
+        2.0, "test-flight: forward speed of the leg (paper §5-C: 2 m/s), m/s", gt=0
+    )
+    test_max_cruise_s: float = param(
+        10.0, "test-flight: the forward leg ends (Hold) after this even without a threat, s", gt=0
     )
     takeover_modes: tuple[str, ...] = param(
         ("position", "hold", "mission"),

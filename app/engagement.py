@@ -75,6 +75,8 @@ class Output:
     start_offboard: bool = False  # switch to Offboard (after the setpoint is set)
     leave_to: str | None = None  # leave Offboard to this mode ("mission" or "hold")
     status: str | None = None  # a status text for the ground station and the log
+    action: str | None = None  # test flight only: "arm_takeoff" or "land"
+    takeoff_altitude_m: float | None = None  # with arm_takeoff, m above home
 
 
 class Engagement:
@@ -102,6 +104,17 @@ class Engagement:
         self._awaiting_mode_since: float | None = None  # link back while in control
         self._shadow_said: str | None = None
         self._last_request = -math.inf
+
+    @property
+    def in_control(self) -> bool:
+        return self.state != MONITOR
+
+    def shutdown(self) -> Output:
+        """What to send when the process stops: zero, and out of Offboard if we were in it."""
+        was = self.in_control
+        self.state = MONITOR
+        return Output(MONITOR, setpoint=ZERO, leave_to="hold" if was else None,
+                      status="midair: stopping, leaving to Hold" if was else None)
 
     # ------------------------------------------------------------------ main
 

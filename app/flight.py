@@ -15,13 +15,24 @@ from typing import Protocol
 
 import numpy as np
 
-from app.engagement import MONITOR, Decision, Engagement, Output, VehicleState
+from app.engagement import Decision, Output, VehicleState
 
 
 class FlightLink(Protocol):
     def snapshot(self) -> VehicleState: ...
 
     async def apply(self, out: Output) -> None: ...
+
+
+class Controller(Protocol):
+    """:class:`app.engagement.Engagement` (guard, shadow) or :class:`app.testflight.TestFlight`."""
+
+    @property
+    def in_control(self) -> bool: ...
+
+    def tick(self, v: VehicleState, d: Decision | None) -> Output: ...
+
+    def shutdown(self) -> Output: ...
 
 
 @dataclass
@@ -44,7 +55,7 @@ class LoopStats:
 
 async def control_loop(
     link: FlightLink,
-    engagement: Engagement,
+    engagement: Controller,
     latest: Callable[[], Decision | None],
     stop: asyncio.Event,
     rate_hz: float = 20.0,
@@ -76,10 +87,8 @@ async def control_loop(
                     stats.decision_to_wire_ms.append((sent - d.t_s) * 1000.0)
             await _sleep_until(max(0.0, period - (time.monotonic() - t0)), stop, wake)
     finally:
-        if engagement.state != MONITOR:
-            engagement.state = MONITOR
-            await asyncio.shield(link.apply(Output(MONITOR, setpoint=(0.0, 0.0, 0.0), leave_to="hold",
-                                                   status="midair: stopping, leaving to Hold")))
+        if engagement.in_control:
+            await asyncio.shield(link.apply(engagement.shutdown()))
 
 
 async def _sleep_until(timeout: float, stop: asyncio.Event, wake: asyncio.Event | None) -> None:

@@ -177,6 +177,14 @@ class Px4Link:
             await self._guard("offboard.stop", self._offboard.stop())  # PX4 goes to Hold
             if out.leave_to == "mission":
                 await self._guard("mission.start_mission", self._mission.start_mission())
+        if out.action == "arm_takeoff":
+            if out.takeoff_altitude_m is not None:
+                await self._guard("set_takeoff_altitude",
+                                  self._action.set_takeoff_altitude(out.takeoff_altitude_m))
+            await self._guard("arm", self._action.arm())
+            await self._guard("takeoff", self._action.takeoff())
+        elif out.action == "land":
+            await self._guard("land", self._action.land())
         if out.status:
             await self._status(out.status)
         self._engaged_before = out.state != MONITOR

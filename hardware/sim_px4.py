@@ -82,6 +82,7 @@ class SimPx4:
         self.status_texts: list[str] = []
         self.mode_log: list[tuple[float, str, str]] = []  # (t, mode, why)
         self.acks: list[tuple[int, int]] = []  # (command, result)
+        self.params: dict[str, float] = {"MIS_TAKEOFF_ALT": 2.5, "COM_OF_LOSS_T": of_loss_t_s}
         self._lock = threading.Lock()
         self._link = True
         self._stop = threading.Event()
@@ -167,6 +168,13 @@ class SimPx4:
                 self.status_texts.append(m.text)
             elif kind == "SET_MODE":
                 self._on_set_mode_code(m.custom_mode, now)
+            elif kind == "PARAM_SET":
+                self.params[m.param_id] = float(m.param_value)
+                self._conn.mav.param_value_send(m.param_id.encode(), m.param_value, m.param_type,
+                                                len(self.params), 0)
+            elif kind == "PARAM_REQUEST_READ" and m.param_id in self.params:
+                self._conn.mav.param_value_send(m.param_id.encode(), self.params[m.param_id],
+                                                ml.MAV_PARAM_TYPE_REAL32, len(self.params), 0)
 
     def _on_setpoint(self, m: ml.MAVLink_set_position_target_local_ned_message, now: float) -> None:
         ignore_vel = m.type_mask & (ml.POSITION_TARGET_TYPEMASK_VX_IGNORE
@@ -196,7 +204,11 @@ class SimPx4:
         elif cmd == ml.MAV_CMD_COMPONENT_ARM_DISARM:
             self.state.armed = p[0] >= 0.5
         elif cmd == ml.MAV_CMD_NAV_TAKEOFF:
-            self._set_mode("takeoff", "command")
+            if not self.state.armed:
+                result = ml.MAV_RESULT_DENIED
+            else:
+                self.state.in_air = True
+                self._set_mode("takeoff", "command")
         elif cmd == ml.MAV_CMD_NAV_LAND:
             self._set_mode("land", "command")
         elif cmd == ml.MAV_CMD_NAV_RETURN_TO_LAUNCH:
@@ -264,7 +276,7 @@ class SimPx4:
             lim = ACCEL_LIMIT_MPS2 * dt
             st.vel_ned[i] += max(-lim, min(lim, dv))
             st.pos_ned[i] += st.vel_ned[i] * dt
-        if st.mode == "takeoff" and st.pos_ned[2] <= -10.0:
+        if st.mode == "takeoff" and -st.pos_ned[2] >= self.params["MIS_TAKEOFF_ALT"]:
             self._set_mode("hold", "takeoff done")
         if st.mode == "land" and st.pos_ned[2] >= 0.0:
             st.pos_ned[2] = 0.0

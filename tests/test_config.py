@@ -55,7 +55,7 @@ def test_yaml_dump_round_trips() -> None:
          "mission, altitude, manual, offboard, return, land, takeoff, other"),
         ({"flight": {"takeover_modes": "position"}},
          "flight.takeover_modes = 'position': must be a list of strings"),
-        ({"flight": {"mode": "test"}}, "flight.mode = 'test': must be one of guard, shadow"),
+        ({"flight": {"mode": "test"}}, "flight.mode = 'test': must be one of guard, shadow, test-flight"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
     ],

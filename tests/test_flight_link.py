@@ -272,3 +272,49 @@ async def test_malformed_connection_url_is_a_clear_error() -> None:
     link = Px4Link("udpin://:14540")  # MAVSDK wants an address: udpin://0.0.0.0:14540
     with pytest.raises(FlightLinkError, match="udpin://:14540"):
         await link.connect(timeout_s=1.0)
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(90)
+async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> None:
+    from app.testflight import TestFlight
+
+    port = free_udp_port()
+    sim = SimPx4(port, state=SimState(armed=False, in_air=False, mode="position",
+                                      pos_ned=[0.0, 0.0, 0.0])).start()
+    link = Px4Link(f"udpin://0.0.0.0:{port}")
+    try:
+        await link.connect(timeout_s=10.0)
+        await wait_for(lambda: link.snapshot().mode == "position" and link.snapshot().altitude_m is not None)
+        tf = TestFlight(FlightConfig(mode="test-flight", test_altitude_m=4.0, forward_speed_mps=2.0), 3.0)
+        slot = Slot()
+        stop = asyncio.Event()
+        task = asyncio.create_task(control_loop(link, tf, slot.get, stop, rate_hz=20.0))
+        tf.request_start()
+        t0 = time.monotonic()
+        while tf.phase != "cruise":
+            slot.set(Command(NONE))
+            assert time.monotonic() - t0 < 20, f"stuck in {tf.phase}"
+            await asyncio.sleep(0.033)
+        assert sim.params["MIS_TAKEOFF_ALT"] == pytest.approx(4.0)
+        assert -sim.state.pos_ned[2] >= 3.4
+        for _ in range(40):  # cruise 1.3 s
+            slot.set(Command(NONE))
+            await asyncio.sleep(0.033)
+        assert sim.velocity_body()[0] > 0.8  # flying forward
+        for _ in range(20):  # a ball from the lower left
+            slot.set(Command(EVADE, 0.0, 2.0, -2.0, 1, "ball"))
+            await asyncio.sleep(0.033)
+        assert tf.phase == "evade"
+        for _ in range(30):
+            slot.set(Command(NONE))
+            await asyncio.sleep(0.033)
+        await wait_for(lambda: sim.mode == "hold")
+        assert tf.phase == "hold"
+        tf.request_land()
+        await wait_for(lambda: sim.mode == "land")
+        stop.set()
+        await task
+    finally:
+        await link.close()
+        sim.stop()
