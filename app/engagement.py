@@ -40,7 +40,7 @@ import math
 from dataclasses import dataclass
 
 from app.config import FlightConfig
-from app.decision import NONE, Command
+from app.decision import NONE, STOP, Command, describe_direction
 
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
 ZERO = (0.0, 0.0, 0.0)
@@ -58,6 +58,8 @@ class VehicleState:
     mode: str  # one of app.config.FLIGHT_MODES
     altitude_m: float | None  # above home, m; None or NaN while unknown
     mode_t_s: float = -math.inf  # when the mode was last reported (PX4: every heartbeat), s
+    velocity_ned_mps: tuple[float, float, float] | None = None  # local NED, m/s
+    lat_lon_deg: tuple[float, float] | None = None  # WGS84 position, deg
 
 
 @dataclass(frozen=True)
@@ -207,7 +209,7 @@ class Engagement:
         self._stale_since = None
         self._return_to = "mission" if v.mode == "mission" else "hold"
         return Output(REQUESTING, setpoint=self._velocity(cmd), start_offboard=True,
-                      status=f"midair: {cmd.action} - {cmd.reason}")
+                      status=status_text(cmd))
 
     def _may_not_take_over(self, v: VehicleState) -> str | None:
         c = self.cfg
@@ -260,3 +262,12 @@ class Engagement:
             k = self.max_speed_mps / speed
             vel = (vel[0] * k, vel[1] * k, vel[2] * k)
         return vel
+
+
+def status_text(cmd: Command) -> str:
+    """A status text for the pilot's ground station (MAVLink keeps 50 characters)."""
+    obj = f"object {cmd.object_id}" if cmd.object_id is not None else "an object"
+    if cmd.action == STOP:
+        return f"midair: emergency stop, {obj}"
+    return f"midair: evading {obj} {describe_direction((cmd.right_mps, cmd.down_mps))}"
+

@@ -22,7 +22,7 @@ import math
 
 from app.config import FlightConfig
 from app.decision import NONE, Command
-from app.engagement import ZERO, Decision, Output, VehicleState
+from app.engagement import ZERO, Decision, Output, VehicleState, status_text
 
 WARMUP_S = 1.2  # PX4 accepts Offboard after a second of setpoints (PX4 user guide)
 RETRY_S = 0.25
@@ -116,7 +116,7 @@ class TestFlight:
             status = None
             if self.phase == "cruise":
                 self._to("evade", v.t_s)
-                status = f"midair: {cmd.action} - {cmd.reason}"
+                status = status_text(cmd)
             self._calm_since = None
             return Output(self.phase, setpoint=self._clamp(cmd), status=status)
         if self.phase == "evade":

@@ -45,6 +45,8 @@ class _Telemetry:
     connected: bool = False
     last_rx: float = -math.inf  # monotonic time of the newest position message
     mode_t: float = -math.inf  # monotonic time of the newest flight-mode report (each heartbeat)
+    velocity_ned: tuple[float, float, float] | None = None  # m/s
+    lat_lon: tuple[float, float] | None = None  # deg
 
 
 def _route_core_log() -> None:
@@ -114,6 +116,7 @@ class Px4Link:
             asyncio.create_task(self._watch(self._telemetry.subscribe_in_air, self._on_in_air)),
             asyncio.create_task(self._watch(self._telemetry.subscribe_flight_mode, self._on_mode)),
             asyncio.create_task(self._watch(self._telemetry.subscribe_position, self._on_position)),
+            asyncio.create_task(self._watch(self._telemetry.subscribe_velocity_ned, self._on_velocity)),
             asyncio.create_task(self._watch(system.is_connected_state, self._on_connected)),
         ]
         self._tel.connected = True
@@ -144,6 +147,12 @@ class Px4Link:
         alt = getattr(p, "relative_altitude_m", math.nan)
         self._tel.altitude_m = float(alt) if alt is not None and math.isfinite(alt) else None
         self._tel.last_rx = time.monotonic()
+        lat, lon = getattr(p, "latitude_deg", math.nan), getattr(p, "longitude_deg", math.nan)
+        self._tel.lat_lon = (float(lat), float(lon)) if math.isfinite(lat) and math.isfinite(lon) else None
+
+    def _on_velocity(self, v: object) -> None:
+        vel = tuple(float(getattr(v, k, math.nan)) for k in ("north_m_s", "east_m_s", "down_m_s"))
+        self._tel.velocity_ned = vel if all(math.isfinite(x) for x in vel) else None  # type: ignore[assignment]
 
     def _on_connected(self, v: object) -> None:
         self._tel.connected = bool(v)
@@ -152,7 +161,8 @@ class Px4Link:
         now = time.monotonic()
         t = self._tel
         connected = t.connected and now - t.last_rx <= self.link_timeout_s
-        return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m, t.mode_t)
+        return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m, t.mode_t,
+                            t.velocity_ned, t.lat_lon)
 
     # ------------------------------------------------------------------ commands
 

@@ -16,7 +16,7 @@ pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
 
 from app.config import FlightConfig  # noqa: E402
-from app.decision import EVADE, NONE, Command  # noqa: E402
+from app.decision import EVADE, NONE, STOP, Command  # noqa: E402
 from app.engagement import Decision, Engagement  # noqa: E402
 from app.flight import LoopStats, control_loop  # noqa: E402
 from hardware.px4 import FlightLinkError, Px4Link  # noqa: E402
@@ -106,7 +106,11 @@ async def test_evasion_reaches_the_vehicle_in_each_direction_then_hands_back(
     assert any(v[1] == pytest.approx(right) and v[2] == pytest.approx(down) for v in got)
     fwd, r_now, d_now = sim.velocity_body()
     assert r_now * right > 0 and d_now * down > 0  # the vehicle is moving that way
-    assert any(t.startswith("midair: evade") for t in sim.status_texts)  # the pilot is told
+    v = link.snapshot()  # and the telemetry says so (yaw 0: east = right)
+    assert v.velocity_ned_mps is not None and v.velocity_ned_mps[1] * right > 0
+    assert v.lat_lon_deg is not None and abs(v.lat_lon_deg[0] - 47.3977) < 0.01
+    expect = ("down" if down > 0 else "up") + "-" + ("right" if right > 0 else "left")
+    assert f"midair: evading object 1 {expect}" in sim.status_texts  # the pilot is told
     await feed(Command(NONE), 1.5)
     await wait_for(lambda: sim.mode == "hold")  # started in Position: back to Hold
     stop.set()
@@ -318,3 +322,26 @@ async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> N
     finally:
         await link.close()
         sim.stop()
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(60)
+async def test_emergency_stop_reaches_the_vehicle_as_zero_velocity(rig: tuple[SimPx4, Px4Link]) -> None:
+    sim, link = rig
+    slot = Slot()
+    eng, stop, task, _ = await run_loop(link, slot)
+    for _ in range(20):
+        slot.set(Command(EVADE, 2.0, 0.0, 0.0, 1, "test"))  # moving forward first
+        await asyncio.sleep(0.033)
+    assert sim.mode == "offboard"
+    t_stop = time.monotonic()
+    for _ in range(40):
+        slot.set(Command(STOP, object_id=2, reason="0.4 m"))
+        await asyncio.sleep(0.033)
+    later = [r.velocity_body for r in sim.received if r.t > t_stop + 0.1]
+    assert later and all(v == (0.0, 0.0, 0.0) for v in later)
+    assert sim.mode == "offboard"  # holding position under our control, not released
+    assert abs(sim.velocity_body()[0]) < 1.0  # and slowing down
+    stop.set()
+    await task
+

@@ -47,7 +47,8 @@ def test_evade_then_hold() -> None:
     t = to_cruise(tf)
     t += DT
     out = tf.tick(vs(t, "offboard"), Decision(Command(EVADE, 0.0, -2.0, -2.0, 4, "ball"), t))
-    assert tf.phase == "evade" and out.setpoint == (0.0, -2.0, -2.0) and "evade" in (out.status or "")
+    assert tf.phase == "evade" and out.setpoint == (0.0, -2.0, -2.0)
+    assert out.status == "midair: evading object 4 up-left"
     outs = []
     for _ in range(15):
         t += DT
