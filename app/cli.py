@@ -1,7 +1,8 @@
 """The ``midair`` command line.
 
 Exit codes: 0 success; 1 an unexpected error (a bug: traceback shown); 2 a bad command
-line or configuration; 3 unusable input data; 130 interrupted.
+line or configuration; 3 unusable input data; 4 the autopilot cannot be reached; 130
+interrupted.
 """
 
 from __future__ import annotations
@@ -68,6 +69,14 @@ def _parser() -> argparse.ArgumentParser:
                    "(setpoint rate, decision-to-wire latency)")
     b.add_argument("--seconds", type=float, default=10.0, help="with --link: how long, s")
     with_config(b)
+
+    f = sub.add_parser("fly", help="the flight process: camera -> perception -> PX4 offboard")
+    f.add_argument("--camera", type=Path, required=True,
+                   help="a recording folder or video played as the camera (the D435i comes later)")
+    f.add_argument("--connection", help="MAVSDK URL (default: flight.connection of the config)")
+    f.add_argument("--mode", choices=("guard", "shadow", "test-flight"),
+                   help="override flight.mode")
+    with_config(f)
 
     c = sub.add_parser("config", help="print the configuration as commented YAML "
                        "(midair config > my.yaml to start tuning)")
@@ -178,6 +187,39 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
+def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
+    import asyncio
+    from dataclasses import replace
+
+    from app.runtime import fly
+    from app.sources import open_source
+    from hardware.px4 import FlightLinkError, Px4Link
+
+    flight = cfg.flight
+    if args.connection:
+        flight = replace(flight, connection=args.connection)
+    if args.mode:
+        flight = replace(flight, mode=args.mode)
+    cfg = replace(cfg, flight=flight)
+    source = open_source(args.camera)
+
+    async def run() -> dict[str, object]:
+        link = Px4Link(flight.connection)
+        await link.connect(timeout_s=flight.connect_timeout_s)
+        try:
+            return (await fly(cfg, source, link)).summary()
+        finally:
+            await link.close()
+
+    try:
+        summary = asyncio.run(run())
+    except FlightLinkError as exc:
+        print(f"midair: error: {exc}", file=sys.stderr)
+        return 4
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
 def _cmd_config(args: argparse.Namespace, cfg: Config) -> int:
     if args.explain:
         print(explain(cfg))
@@ -192,6 +234,7 @@ _COMMANDS = {
     "evaluate": _cmd_evaluate,
     "bench": _cmd_bench,
     "config": _cmd_config,
+    "fly": _cmd_fly,
 }
 
 if __name__ == "__main__":  # pragma: no cover
