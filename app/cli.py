@@ -93,7 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
-    logging.getLogger("app").setLevel(logging.DEBUG if args.verbose else logging.INFO)
+    for name in ("app", "hardware"):
+        logging.getLogger(name).setLevel(logging.DEBUG if args.verbose else logging.INFO)
     try:
         cfg = load_config(args.config)
         return _COMMANDS[args.command](args, cfg)

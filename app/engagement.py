@@ -106,6 +106,7 @@ class Engagement:
         self._awaiting_mode_since: float | None = None  # link back while in control
         self._shadow_said: str | None = None
         self._last_request = -math.inf
+        self._had_link = False  # a link that never was cannot be "lost"
 
     @property
     def in_control(self) -> bool:
@@ -124,6 +125,7 @@ class Engagement:
         c = self.cfg
         if not v.connected:
             return self._link_lost(v)
+        self._had_link = True
         if self._link_was_lost:
             self._link_was_lost = False
             self._fresh_after = v.t_s
@@ -239,8 +241,8 @@ class Engagement:
         return Output(MONITOR, setpoint=ZERO, leave_to=to, status=text)
 
     def _link_lost(self, v: VehicleState) -> Output:
-        first = not self._link_was_lost
-        self._link_was_lost = True
+        first = not self._link_was_lost and self._had_link
+        self._link_was_lost = self._link_was_lost or self._had_link
         if self.state == MONITOR:
             return Output(MONITOR, status="midair: link lost" if first else None)
         # Replace the setpoint MAVSDK keeps re-sending, so a returning link carries zero.

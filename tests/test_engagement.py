@@ -187,3 +187,11 @@ def test_landing_while_engaged_hands_off() -> None:
     t = engaged(e)
     out = e.tick(vs(t + DT, "offboard", in_air=False), Decision(EVADE_CMD, t + DT))
     assert out.state == MONITOR and out.setpoint is None
+
+
+def test_no_link_yet_is_not_a_lost_link() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    out = e.tick(vs(0.0, connected=False), None)
+    assert out.status is None and out.setpoint is None
+    e.tick(vs(0.1), None)
+    assert "link lost" in (e.tick(vs(0.2, connected=False), None).status or "")
