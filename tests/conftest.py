@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
+import socket
+import time
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -29,3 +35,38 @@ def textured(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
     img = cv2.resize(cv2.GaussianBlur(noise, (0, 0), 0.8), (w, h), interpolation=cv2.INTER_CUBIC)
     img = 128 + 60 * img / np.abs(img).max()
     return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+async def wait_for(pred: Callable[[], bool], timeout: float = 5.0) -> None:
+    t0 = time.monotonic()
+    while not pred():
+        if time.monotonic() - t0 > timeout:
+            raise AssertionError("condition not reached in time")
+        await asyncio.sleep(0.02)
+
+
+@contextlib.asynccontextmanager
+async def vehicle(state: Any = None, ready: Callable[[Any], bool] | None = None) -> AsyncIterator[Any]:
+    """The PX4 stand-in on a free port and a connected :class:`hardware.px4.Px4Link`;
+    ``ready(snapshot)`` is awaited before the body runs. Yields ``(sim, link)``."""
+    from hardware.px4 import Px4Link
+    from hardware.sim_px4 import SimPx4
+
+    port = free_udp_port()
+    sim = SimPx4(port, state=state).start()
+    link = Px4Link(f"udpin://0.0.0.0:{port}")
+    try:
+        await link.connect(timeout_s=10.0)
+        if ready is not None:
+            await wait_for(lambda: ready(link.snapshot()))
+        yield sim, link
+    finally:
+        await link.close()
+        sim.stop()
+

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 import asyncio
 import math
-import socket
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 
 import pytest
 import pytest_asyncio
@@ -17,16 +16,11 @@ pytest.importorskip("pymavlink")
 
 from app.config import FlightConfig  # noqa: E402
 from app.decision import EVADE, NONE, STOP, Command  # noqa: E402
-from app.engagement import Decision, Engagement  # noqa: E402
+from app.engagement import Decision, Engagement, VehicleState  # noqa: E402
 from app.flight import LoopStats, control_loop  # noqa: E402
 from hardware.px4 import FlightLinkError, Px4Link  # noqa: E402
 from hardware.sim_px4 import SimPx4, SimState  # noqa: E402
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from tests.conftest import free_udp_port, vehicle, wait_for  # noqa: E402
 
 
 class Slot:
@@ -42,30 +36,16 @@ class Slot:
         return self.value
 
 
-async def wait_for(pred, timeout: float = 5.0) -> None:  # type: ignore[no-untyped-def]
-    t0 = time.monotonic()
-    while not pred():
-        if time.monotonic() - t0 > timeout:
-            raise AssertionError("condition not reached in time")
-        await asyncio.sleep(0.02)
+def flying_in(mode: str) -> Callable[[VehicleState], bool]:
+    """The telemetry the take-over conditions read has arrived."""
+    return lambda v: (v.connected and v.armed and v.in_air and v.mode == mode
+                      and v.altitude_m is not None)
 
 
 @pytest_asyncio.fixture
 async def rig() -> AsyncIterator[tuple[SimPx4, Px4Link]]:
-    port = free_udp_port()
-    sim = SimPx4(port, state=SimState(mode="position")).start()
-    link = Px4Link(f"udpin://0.0.0.0:{port}")
-    await link.connect(timeout_s=10.0)
-    def known() -> bool:  # the telemetry the take-over conditions read has arrived
-        v = link.snapshot()
-        return v.connected and v.armed and v.in_air and v.mode == "position" and v.altitude_m is not None
-
-    await wait_for(known)
-    try:
+    async with vehicle(SimState(mode="position"), flying_in("position")) as (sim, link):
         yield sim, link
-    finally:
-        await link.close()
-        sim.stop()
 
 
 async def run_loop(link: Px4Link, slot: Slot, cfg: FlightConfig | None = None):  # type: ignore[no-untyped-def]
@@ -181,13 +161,7 @@ async def test_vehicle_accepts_offboard_only_after_a_second_of_setpoints(rig: tu
 @pytest.mark.asyncio
 @pytest.mark.timeout(60)
 async def test_release_resumes_the_mission() -> None:
-    port = free_udp_port()
-    sim = SimPx4(port, state=SimState(mode="mission")).start()
-    link = Px4Link(f"udpin://0.0.0.0:{port}")
-    try:
-        await link.connect(timeout_s=10.0)
-        await wait_for(lambda: link.snapshot().mode == "mission" and link.snapshot().in_air
-                       and link.snapshot().armed)
+    async with vehicle(SimState(mode="mission"), flying_in("mission")) as (sim, link):
         slot = Slot()
         eng, stop, task, _ = await run_loop(link, slot)
         for _ in range(30):
@@ -200,9 +174,6 @@ async def test_release_resumes_the_mission() -> None:
         await wait_for(lambda: sim.mode == "mission")
         stop.set()
         await task
-    finally:
-        await link.close()
-        sim.stop()
 
 
 @pytest.mark.asyncio
@@ -283,13 +254,9 @@ async def test_malformed_connection_url_is_a_clear_error() -> None:
 async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> None:
     from app.testflight import TestFlight
 
-    port = free_udp_port()
-    sim = SimPx4(port, state=SimState(armed=False, in_air=False, mode="position",
-                                      pos_ned=[0.0, 0.0, 0.0])).start()
-    link = Px4Link(f"udpin://0.0.0.0:{port}")
-    try:
-        await link.connect(timeout_s=10.0)
-        await wait_for(lambda: link.snapshot().mode == "position" and link.snapshot().altitude_m is not None)
+    on_ground = SimState(armed=False, in_air=False, mode="position", pos_ned=[0.0, 0.0, 0.0])
+    known = lambda v: v.mode == "position" and v.altitude_m is not None  # noqa: E731
+    async with vehicle(on_ground, known) as (sim, link):
         tf = TestFlight(FlightConfig(mode="test-flight", test_altitude_m=4.0, forward_speed_mps=2.0), 3.0)
         slot = Slot()
         stop = asyncio.Event()
@@ -319,9 +286,6 @@ async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> N
         await wait_for(lambda: sim.mode == "land")
         stop.set()
         await task
-    finally:
-        await link.close()
-        sim.stop()
 
 
 @pytest.mark.asyncio

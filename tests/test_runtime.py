@@ -4,7 +4,6 @@ the offboard coroutine, MAVSDK, and the PX4-faithful vehicle over UDP."""
 from __future__ import annotations
 
 import asyncio
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -18,14 +17,8 @@ from app.config import Config  # noqa: E402
 from app.runtime import LatestSlot, fly  # noqa: E402
 from app.sources import open_source  # noqa: E402
 from app.synthetic import approach_scene, write_recording  # noqa: E402
-from hardware.px4 import Px4Link  # noqa: E402
-from hardware.sim_px4 import SimPx4, SimState  # noqa: E402
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+from hardware.sim_px4 import SimState  # noqa: E402
+from tests.conftest import free_udp_port, vehicle  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -38,20 +31,9 @@ def ball(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.asyncio
 @pytest.mark.timeout(90)
 async def test_approaching_ball_makes_the_vehicle_evade(ball: Path) -> None:
-    port = free_udp_port()
-    sim = SimPx4(port, state=SimState(mode="position")).start()
-    link = Px4Link(f"udpin://0.0.0.0:{port}")
-    try:
-        await link.connect(timeout_s=10.0)
-        for _ in range(100):
-            v = link.snapshot()
-            if v.armed and v.in_air and v.mode == "position" and v.altitude_m:
-                break
-            await asyncio.sleep(0.05)
+    flying = lambda v: v.armed and v.in_air and v.mode == "position" and v.altitude_m  # noqa: E731
+    async with vehicle(SimState(mode="position"), flying) as (sim, link):
         stats = await fly(Config(), open_source(ball), link, install_signals=False)
-    finally:
-        await link.close()
-        sim.stop()
     assert stats.frames_in == 110 and stats.frames_processed >= 100
     assert any(m == "offboard" for _, m, _ in sim.mode_log)
     evasions = [r.velocity_body for r in sim.received
