@@ -256,14 +256,7 @@ class Engagement:
         return fresh and d.t_s >= self._fresh_after
 
     def _velocity(self, cmd: Command) -> tuple[float, float, float]:
-        vel = (cmd.forward_mps, cmd.right_mps, cmd.down_mps)
-        if not all(math.isfinite(x) for x in vel):
-            return ZERO
-        speed = math.sqrt(sum(x * x for x in vel))
-        if speed > self.max_speed_mps:
-            k = self.max_speed_mps / speed
-            vel = (vel[0] * k, vel[1] * k, vel[2] * k)
-        return vel
+        return clamp_velocity(cmd, self.max_speed_mps)
 
 
 def status_text(cmd: Command) -> str:
@@ -272,4 +265,17 @@ def status_text(cmd: Command) -> str:
     if cmd.action == STOP:
         return f"midair: emergency stop, {obj}"
     return f"midair: evading {obj} {describe_direction((cmd.right_mps, cmd.down_mps))}"
+
+
+def clamp_velocity(cmd: Command, max_speed_mps: float) -> tuple[float, float, float]:
+    """The command's body velocity (forward, right, down m/s), scaled down to at most
+    ``max_speed_mps``; zero for anything not finite."""
+    vel = (cmd.forward_mps, cmd.right_mps, cmd.down_mps)
+    if not all(math.isfinite(x) for x in vel):
+        return ZERO
+    speed = math.sqrt(sum(x * x for x in vel))
+    if speed > max_speed_mps:
+        k = max_speed_mps / speed
+        vel = (vel[0] * k, vel[1] * k, vel[2] * k)
+    return vel
 

@@ -22,7 +22,7 @@ import math
 
 from app.config import FlightConfig
 from app.decision import NONE, Command
-from app.engagement import ZERO, Decision, Output, VehicleState, status_text
+from app.engagement import ZERO, Decision, Output, VehicleState, clamp_velocity, status_text
 
 WARMUP_S = 1.2  # PX4 accepts Offboard after a second of setpoints (PX4 user guide)
 RETRY_S = 0.25
@@ -133,9 +133,4 @@ class TestFlight:
         return Output(self.phase, setpoint=ZERO, leave_to="hold", status=text)
 
     def _clamp(self, cmd: Command) -> tuple[float, float, float]:
-        vel = (cmd.forward_mps, cmd.right_mps, cmd.down_mps)
-        if not all(math.isfinite(x) for x in vel):
-            return ZERO
-        speed = math.sqrt(sum(x * x for x in vel))
-        k = min(1.0, self.max_speed_mps / speed) if speed > 0 else 1.0
-        return (vel[0] * k, vel[1] * k, vel[2] * k)
+        return clamp_velocity(cmd, self.max_speed_mps)
