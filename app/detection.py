@@ -106,12 +106,9 @@ class MotionDetector:
     def _configure(self, shape: tuple[int, int]) -> None:
         h, w = shape
         c = self.cfg
+        self._windows = border_windows(w, h, c.window_px, c.window_count)  # checks the size too
         if self.full_frame:
-            if w < 3 * c.window_px or h < 3 * c.window_px:
-                border_windows(w, h, c.window_px, c.window_count)  # raises the same error
             self._windows = [(0, 0, w, h)]
-        else:
-            self._windows = border_windows(w, h, c.window_px, c.window_count)
         m = c.lk_search_px
         self._crops = [(max(0, x0 - m), max(0, y0 - m), min(w, x1 + m), min(h, y1 + m))
                        for x0, y0, x1, y1 in self._windows]

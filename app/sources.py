@@ -60,7 +60,7 @@ class FrameSource:
 
 
 class VideoSource(FrameSource):
-    def __init__(self, path: Path, fps: float | None = None) -> None:
+    def __init__(self, path: Path, fps: float | None = None, times: list[float] | None = None) -> None:
         self.path = path
         self.name = path.stem
         cap = cv2.VideoCapture(str(path))
@@ -74,7 +74,7 @@ class VideoSource(FrameSource):
             self._count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         finally:
             cap.release()
-        self._times: list[float] | None = None
+        self._times = times  # capture times from frames.csv, if any
 
     def __len__(self) -> int:
         return self._count
@@ -95,7 +95,8 @@ class VideoSource(FrameSource):
 
 
 class ImageFolderSource(FrameSource):
-    def __init__(self, folder: Path, fps: float | None = None) -> None:
+    def __init__(self, folder: Path, fps: float | None = None,
+                 times: list[float] | None = None) -> None:
         self.folder = folder
         self.name = folder.name if folder.name not in ("img", "color") else folder.parent.name
         files = sorted(p for p in folder.iterdir() if not p.name.startswith("."))
@@ -106,7 +107,7 @@ class ImageFolderSource(FrameSource):
             raise SourceError(f"{folder}: the folder holds no images")
         self.files = files
         self.fps = fps or DEFAULT_FPS
-        self._times: list[float] | None = None
+        self._times = times  # capture times from frames.csv, if any
 
     def __len__(self) -> int:
         return len(self.files)
@@ -141,12 +142,11 @@ class RecordingSource(FrameSource):
             fps = (len(times) - 1) / (times[-1] - times[0])
         color: FrameSource
         if (folder / "color.mp4").is_file():
-            color = VideoSource(folder / "color.mp4", fps)
+            color = VideoSource(folder / "color.mp4", fps, times)
         elif (folder / "color").is_dir():
-            color = ImageFolderSource(folder / "color", fps)
+            color = ImageFolderSource(folder / "color", fps, times)
         else:
             raise SourceError(f"{folder}: a recording folder needs color.mp4 or color/")
-        color._times = times
         self.color = color
         self.fps = color.fps
         self.depth_dir = folder / "depth"

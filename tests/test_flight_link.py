@@ -35,6 +35,12 @@ class Slot:
     def get(self) -> Decision | None:
         return self.value
 
+    async def feed(self, cmd: Command, frames: int) -> None:
+        """Publish ``cmd`` afresh for ``frames`` frames of a 30 fps perception."""
+        for _ in range(frames):
+            self.set(cmd)
+            await asyncio.sleep(0.033)
+
 
 def flying_in(mode: str) -> Callable[[VehicleState], bool]:
     """The telemetry the take-over conditions read has arrived."""
@@ -74,13 +80,7 @@ async def test_evasion_reaches_the_vehicle_in_each_direction_then_hands_back(
     slot = Slot()
     eng, stop, task, stats = await run_loop(link, slot)
 
-    async def feed(cmd: Command, seconds: float) -> None:
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            slot.set(cmd)
-            await asyncio.sleep(0.033)  # a 30 fps perception
-
-    await feed(Command(EVADE, 0.0, right, down, 1, "test"), 1.5)
+    await slot.feed(Command(EVADE, 0.0, right, down, 1, "test"), 45)
     assert sim.mode == "offboard"
     got = [r.velocity_body for r in sim.received if r.velocity_body is not None]
     assert any(v[1] == pytest.approx(right) and v[2] == pytest.approx(down) for v in got)
@@ -91,7 +91,7 @@ async def test_evasion_reaches_the_vehicle_in_each_direction_then_hands_back(
     assert v.lat_lon_deg is not None and abs(v.lat_lon_deg[0] - 47.3977) < 0.01
     expect = ("down" if down > 0 else "up") + "-" + ("right" if right > 0 else "left")
     assert f"midair: evading object 1 {expect}" in sim.status_texts  # the pilot is told
-    await feed(Command(NONE), 1.5)
+    await slot.feed(Command(NONE), 45)
     await wait_for(lambda: sim.mode == "hold")  # started in Position: back to Hold
     stop.set()
     await task
@@ -105,14 +105,10 @@ async def test_pilot_mode_switch_wins(rig: tuple[SimPx4, Px4Link]) -> None:
     sim, link = rig
     slot = Slot()
     eng, stop, task, _ = await run_loop(link, slot)
-    for _ in range(30):
-        slot.set(Command(EVADE, 0.0, 2.0, -2.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 0.0, 2.0, -2.0, 1, "test"), 30)
     assert sim.mode == "offboard", (sim.acks, sim.mode_log, eng.state)
     sim.pilot_set_mode("position")
-    for _ in range(60):  # the threat persists for 2 s
-        slot.set(Command(EVADE, 0.0, 2.0, -2.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 0.0, 2.0, -2.0, 1, "test"), 60)  # the threat persists for 2 s
     assert sim.mode == "position"  # never taken back
     assert [m for _, m, why in sim.mode_log if why == "command"].count("offboard") == 1
     stop.set()
@@ -125,9 +121,7 @@ async def test_stalled_perception_stops_then_holds(rig: tuple[SimPx4, Px4Link]) 
     sim, link = rig
     slot = Slot()
     eng, stop, task, _ = await run_loop(link, slot, FlightConfig(stale_release_s=1.0))
-    for _ in range(20):
-        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"), 20)
     assert sim.mode == "offboard"
     t_stall = time.monotonic()  # perception hangs: the slot keeps its last decision
     await wait_for(lambda: sim.mode == "hold", timeout=4.0)
@@ -164,13 +158,9 @@ async def test_release_resumes_the_mission() -> None:
     async with vehicle(SimState(mode="mission"), flying_in("mission")) as (sim, link):
         slot = Slot()
         eng, stop, task, _ = await run_loop(link, slot)
-        for _ in range(30):
-            slot.set(Command(EVADE, 0.0, -2.0, 0.0, 1, "test"))
-            await asyncio.sleep(0.033)
+        await slot.feed(Command(EVADE, 0.0, -2.0, 0.0, 1, "test"), 30)
         assert sim.mode == "offboard"
-        for _ in range(40):
-            slot.set(Command(NONE))
-            await asyncio.sleep(0.033)
+        await slot.feed(Command(NONE), 40)
         await wait_for(lambda: sim.mode == "mission")
         stop.set()
         await task
@@ -186,23 +176,18 @@ async def test_link_loss_then_reconnect_never_resumes_a_stale_command(
     sim, link = rig
     slot = Slot()
     eng, stop, task, _ = await run_loop(link, slot)
-    for _ in range(30):
-        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"), 30)
     assert sim.mode == "offboard"
     sim.set_link(False)
     t_cut = time.monotonic()
     await wait_for(lambda: sim.mode == "hold", timeout=3.0)
     failsafe_after = time.monotonic() - t_cut
     assert 0.9 <= failsafe_after <= 1.6  # COM_OF_LOSS_T = 1 s
-    for _ in range(15):  # perception keeps asking for the evasion during the outage
-        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    # perception keeps asking for the evasion during the outage
+    await slot.feed(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"), 15)
     sim.set_link(True)
     t_back = time.monotonic()
-    for _ in range(60):
-        slot.set(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"), 60)
     assert sim.mode == "hold", (sim.mode_log, sim.acks[-6:])  # not re-taken
     after = [r.velocity_body for r in sim.received if r.t > t_back + 0.2]
     assert after and all(v == (0.0, 0.0, 0.0) for v in after)
@@ -269,17 +254,11 @@ async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> N
             await asyncio.sleep(0.033)
         assert sim.params["MIS_TAKEOFF_ALT"] == pytest.approx(4.0)
         assert -sim.state.pos_ned[2] >= 3.4
-        for _ in range(40):  # cruise 1.3 s
-            slot.set(Command(NONE))
-            await asyncio.sleep(0.033)
+        await slot.feed(Command(NONE), 40)  # cruise 1.3 s
         assert sim.velocity_body()[0] > 0.8  # flying forward
-        for _ in range(20):  # a ball from the lower left
-            slot.set(Command(EVADE, 0.0, 2.0, -2.0, 1, "ball"))
-            await asyncio.sleep(0.033)
+        await slot.feed(Command(EVADE, 0.0, 2.0, -2.0, 1, "ball"), 20)  # a ball from the lower left
         assert tf.phase == "evade"
-        for _ in range(30):
-            slot.set(Command(NONE))
-            await asyncio.sleep(0.033)
+        await slot.feed(Command(NONE), 30)
         await wait_for(lambda: sim.mode == "hold")
         assert tf.phase == "hold"
         tf.request_land()
@@ -294,14 +273,10 @@ async def test_emergency_stop_reaches_the_vehicle_as_zero_velocity(rig: tuple[Si
     sim, link = rig
     slot = Slot()
     eng, stop, task, _ = await run_loop(link, slot)
-    for _ in range(20):
-        slot.set(Command(EVADE, 2.0, 0.0, 0.0, 1, "test"))  # moving forward first
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(EVADE, 2.0, 0.0, 0.0, 1, "test"), 20)  # moving forward first
     assert sim.mode == "offboard"
     t_stop = time.monotonic()
-    for _ in range(40):
-        slot.set(Command(STOP, object_id=2, reason="0.4 m"))
-        await asyncio.sleep(0.033)
+    await slot.feed(Command(STOP, object_id=2, reason="0.4 m"), 40)
     later = [r.velocity_body for r in sim.received if r.t > t_stop + 0.1]
     assert later and all(v == (0.0, 0.0, 0.0) for v in later)
     assert sim.mode == "offboard"  # holding position under our control, not released
