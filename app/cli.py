@@ -71,11 +71,14 @@ def _parser() -> argparse.ArgumentParser:
     with_config(b)
 
     f = sub.add_parser("fly", help="the flight process: camera -> perception -> PX4 offboard")
-    f.add_argument("--camera", type=Path, required=True,
-                   help="a recording folder or video played as the camera (the D435i comes later)")
+    f.add_argument("--camera", help="realsense (the D435i), or a recording folder, video or "
+                   "RealSense recording (.db3/.bag) played as the camera (default: capture.camera)")
     f.add_argument("--connection", help="MAVSDK URL (default: flight.connection of the config)")
     f.add_argument("--mode", choices=("guard", "shadow", "test-flight"),
                    help="override flight.mode")
+    f.add_argument("--record", type=Path, metavar="DIR",
+                   help="write the flight record under DIR (default: record.dir)")
+    f.add_argument("--no-record", action="store_true", help="write no flight record")
     with_config(f)
 
     c = sub.add_parser("config", help="print the configuration as commented YAML "
@@ -192,8 +195,10 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
     import asyncio
     from dataclasses import replace
 
+    from app.notify import Notifier
+    from app.record import FlightRecord
     from app.runtime import fly
-    from app.sources import open_source
+    from app.sources import FrameSource, open_source
     from hardware.px4 import FlightLinkError, Px4Link
 
     flight = cfg.flight
@@ -201,24 +206,71 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
         flight = replace(flight, connection=args.connection)
     if args.mode:
         flight = replace(flight, mode=args.mode)
-    cfg = replace(cfg, flight=flight)
-    source = open_source(args.camera)
+    record_cfg = cfg.record
+    if args.record:
+        record_cfg = replace(record_cfg, dir=str(args.record))
+    if args.no_record:
+        record_cfg = replace(record_cfg, enabled=False)
+    camera = args.camera or cfg.capture.camera
+    cfg = replace(cfg, flight=flight, record=record_cfg,
+                  capture=replace(cfg.capture, camera=camera))
+    notifier = Notifier()
+    source: FrameSource
+    if camera == "realsense":
+        from hardware.realsense import RealSenseSource
 
-    async def run() -> dict[str, object]:
+        source = RealSenseSource(cfg.capture)
+    else:
+        source = open_source(camera, capture=cfg.capture)
+    record = None
+    if record_cfg.enabled:
+        from app.camera import camera_from_config
+
+        record = FlightRecord(record_cfg, cfg, source.camera or camera_from_config(cfg.camera))
+        record.start()
+    summary: dict[str, object] = {}
+
+    async def run() -> None:
         link = Px4Link(flight.connection)
+        notifier.status(f"connecting to {flight.connection}")
         await link.connect(timeout_s=flight.connect_timeout_s)
         try:
-            return (await fly(cfg, source, link)).summary()
+            stats = await fly(cfg, source, link, record=record, notifier=notifier)
+            summary.update(stats.summary())
         finally:
             await link.close()
 
     try:
-        summary = asyncio.run(run())
-    except FlightLinkError as exc:
-        print(f"midair: error: {exc}", file=sys.stderr)
-        return 4
+        asyncio.run(run())
+    except BaseException as exc:  # noqa: BLE001 - sorted out below, then re-raised or mapped
+        error = _unwrap(exc)
+        summary["ended_by"] = f"error: {type(error).__name__}: {error}"
+        if isinstance(error, FlightLinkError):
+            print(f"midair: error: {error}", file=sys.stderr)
+            return 4
+        if isinstance(error, UserError):
+            print(f"midair: error: {error}", file=sys.stderr)
+            return error.exit_code
+        if isinstance(error, KeyboardInterrupt):
+            raise
+        log.critical("stopped by an unexpected error (control was stopped first)", exc_info=error)
+        return 1
+    finally:
+        notifier.stopping()
+        notifier.close()
+        source.close()
+        if record is not None:
+            record.close(summary)
+            print(f"flight record: {record.folder}", file=sys.stderr)
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def _unwrap(exc: BaseException) -> BaseException:
+    """The first real error inside (nested) exception groups."""
+    while isinstance(exc, BaseExceptionGroup) and exc.exceptions:
+        exc = exc.exceptions[0]
+    return exc
 
 
 def _cmd_config(args: argparse.Namespace, cfg: Config) -> int:

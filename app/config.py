@@ -200,6 +200,72 @@ class CameraConfig:
     depth_scale_m: float = param(0.001, "metres per depth unit", gt=0)
 
 
+# --------------------------------------------------------------------------- capture
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """The camera of ``midair fly``: the D435i through pyrealsense2, and how it recovers."""
+
+    camera: str = param(
+        "realsense",
+        "realsense: the D435i (live); or a path: a recording folder, a video, or a RealSense "
+        "recording (.db3/.bag) played as the camera at its frame rate",
+    )
+    serial: str = param("", "serial number of the D435i to open; empty: the first one found")
+    color_width: int = param(640, "colour stream width, px", gt=0)
+    color_height: int = param(480, "colour stream height, px", gt=0)
+    color_fps: int = param(60, "colour frame rate (D435i: 6, 15, 30 or 60 at 640x480), frames/s",
+                           choices=(6, 15, 30, 60))
+    depth_width: int = param(848, "depth stream width (848x480 is the D435i's best depth "
+                             "resolution), px", gt=0)
+    depth_height: int = param(480, "depth stream height, px", gt=0)
+    depth_fps: int = param(60, "depth frame rate, frames/s", choices=(6, 15, 30, 60, 90))
+    enable_imu: bool = param(False, "also stream the IMU (accel + gyro); off: less USB and CPU load")
+    frame_timeout_ms: float = param(
+        500.0, "no frame for this long is a stall: restart the pipeline, ms", gt=0
+    )
+    restarts_before_reset: int = param(
+        2, "pipeline restarts that failed before the device gets a USB hardware reset", ge=0
+    )
+    backoff_initial_s: float = param(0.5, "first wait between recovery attempts, s", gt=0)
+    backoff_max_s: float = param(4.0, "longest wait between recovery attempts (doubling), s", gt=0)
+    give_up_s: float = param(
+        20.0, "no frame for this long: exit with an error (systemd restarts the service), s", gt=0
+    )
+
+
+# --------------------------------------------------------------------------- flight record
+
+
+@dataclass(frozen=True)
+class RecordConfig:
+    """The flight record: a folder per run under ``dir``, bounded in total size."""
+
+    enabled: bool = param(True, "write a flight record for every `midair fly` run")
+    dir: str = param("records", "folder that holds one sub-folder per run (relative to the "
+                     "working directory; the systemd service runs in /var/lib/midair)")
+    frames: str = param(
+        "color+depth",
+        "frames saved as a recording folder that `midair replay` reads: color+depth, color or none",
+        choices=("color+depth", "color", "none"),
+    )
+    png_compression: int = param(1, "PNG compression of saved frames (0 fastest .. 9 smallest)",
+                                 ge=0, le=9)
+    max_total_mb: float = param(
+        4000.0, "all runs together stay below this; the oldest runs are deleted first, MB", gt=0
+    )
+    min_free_mb: float = param(
+        500.0, "stop saving frames when the disk has less free space than this, MB", ge=0
+    )
+    queue_frames: int = param(
+        120, "frames waiting for the writer; when it falls behind, frames are skipped "
+        "(counted), never the flight", gt=0,
+    )
+    flush_s: float = param(1.0, "written to disk at least this often (a crash loses at most "
+                           "this much), s", gt=0)
+
+
 # --------------------------------------------------------------------------- decision
 
 
@@ -321,6 +387,8 @@ class Config:
     camera: CameraConfig = field(default_factory=CameraConfig)
     decision: DecisionConfig = field(default_factory=DecisionConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
+    record: RecordConfig = field(default_factory=RecordConfig)
 
 
 # --------------------------------------------------------------------------- loading
@@ -444,6 +512,13 @@ def check_consistency(cfg: Config) -> None:
     if dc.evade_speed_mps > dc.max_speed_mps:
         raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
                           f"max_speed_mps ({dc.max_speed_mps:g})")
+    cap = cfg.capture
+    if cap.backoff_initial_s > cap.backoff_max_s:
+        raise ConfigError(f"capture.backoff_initial_s = {cap.backoff_initial_s:g}: must be <= "
+                          f"backoff_max_s ({cap.backoff_max_s:g})")
+    if cap.give_up_s * 1000.0 <= cap.frame_timeout_ms:
+        raise ConfigError(f"capture.give_up_s = {cap.give_up_s:g}: must be longer than "
+                          f"frame_timeout_ms ({cap.frame_timeout_ms:g} ms)")
     avoid = avoid_distance_m(dc)
     if dc.emergency_m >= avoid:
         raise ConfigError(f"decision.emergency_m = {dc.emergency_m:g}: must be < the avoidance "

@@ -65,7 +65,10 @@ class VehicleState:
 @dataclass(frozen=True)
 class Decision:
     command: Command
-    t_s: float  # monotonic time the decision was made (for its frame), s
+    t_s: float  # monotonic capture time of the frame it is about (its age is judged by it), s
+    frame: int = 0  # that frame's number in its source (latency accounting)
+    t_perceived_s: float = math.nan  # monotonic time stages 1-3 finished, s
+    t_decided_s: float = math.nan  # monotonic time stage 4 finished, s
 
 
 @dataclass(frozen=True)

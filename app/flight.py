@@ -61,9 +61,12 @@ async def control_loop(
     rate_hz: float = 20.0,
     stats: LoopStats | None = None,
     wake: asyncio.Event | None = None,
+    on_tick: Callable[[VehicleState, Decision | None, Output, float], None] | None = None,
 ) -> None:
     """Tick at ``rate_hz`` and at once whenever ``wake`` is set (a new decision), until
     ``stop`` is set; then, if in control, zero velocity and leave to Hold.
+    ``on_tick(state, decision, output, t_sent)`` sees every tick after it was carried out
+    (the flight record and latency accounting hang off it; it must not block).
 
     Cancellation and errors end the same way (``finally``): the vehicle is never left
     flying our last command.
@@ -75,9 +78,12 @@ async def control_loop(
         while not stop.is_set():
             t0 = time.monotonic()
             d = latest()
-            out = engagement.tick(link.snapshot(), d)
+            v = link.snapshot()
+            out = engagement.tick(v, d)
             await link.apply(out)
             sent = time.monotonic()
+            if on_tick is not None:
+                on_tick(v, d, out, sent)
             stats.ticks += 1
             stats.period_ms.append((t0 - last) * 1000.0)
             last = t0
@@ -88,7 +94,10 @@ async def control_loop(
             await _sleep_until(max(0.0, period - (time.monotonic() - t0)), stop, wake)
     finally:
         if engagement.in_control:
-            await asyncio.shield(link.apply(engagement.shutdown()))
+            out = engagement.shutdown()
+            await asyncio.shield(link.apply(out))
+            if on_tick is not None:
+                on_tick(link.snapshot(), None, out, time.monotonic())
 
 
 async def _sleep_until(timeout: float, stop: asyncio.Event, wake: asyncio.Event | None) -> None:

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from app.camera import CameraModel
+from app.config import CaptureConfig
 from app.errors import SourceError
 from app.perception import Frame
 
@@ -51,6 +52,10 @@ class FrameSource:
     fps: float
     has_depth: bool = False
     camera: CameraModel | None = None  # calibration that came with the source, if any
+    live: bool = False  # a live camera: frames stamped on the monotonic clock, never paced
+
+    def close(self) -> None:
+        """Release the device or files (a no-op for sources that hold nothing open)."""
 
     def __iter__(self) -> Iterator[Frame]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -193,11 +198,17 @@ def read_frames_csv(path: Path) -> list[float]:
     return times
 
 
-def open_source(path: str | Path, fps: float | None = None) -> FrameSource:
-    """A video file, an image folder or a recording folder, chosen by what ``path`` is."""
+def open_source(path: str | Path, fps: float | None = None,
+                capture: CaptureConfig | None = None) -> FrameSource:
+    """A video file, an image folder, a recording folder or a RealSense recording
+    (``.db3``/``.bag``, needs pyrealsense2), chosen by what ``path`` is."""
     p = Path(path)
     if not p.exists():
         raise SourceError(f"{p}: no such file or folder")
+    if p.is_file() and p.suffix.lower() in (".db3", ".bag"):
+        from hardware.realsense import RealSenseSource
+
+        return RealSenseSource(capture or CaptureConfig(), p)
     if p.is_dir():
         if (p / "color.mp4").exists() or (p / "color").is_dir():
             return RecordingSource(p)

@@ -325,3 +325,37 @@ class SimPx4:
                     | ml.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
             self._conn.mav.autopilot_version_send(caps, 1 << 24 | 14 << 16, 0, 0, 0,
                                                   [0] * 8, [0] * 8, [0] * 8, 0, 0, 1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m hardware.sim_px4 --port 14540``: a flying vehicle for desk runs of
+    ``midair fly --connection udpin://0.0.0.0:14540``. Prints its mode changes."""
+    import argparse
+
+    p = argparse.ArgumentParser(prog="python -m hardware.sim_px4", description=main.__doc__)
+    p.add_argument("--port", type=int, default=14540, help="UDP port MAVSDK listens on")
+    p.add_argument("--mode", default="position", choices=sorted(PX4_MODES), help="starting mode")
+    p.add_argument("--landed", action="store_true", help="start disarmed on the ground")
+    args = p.parse_args(argv)
+    state = SimState(armed=not args.landed, in_air=not args.landed, mode=args.mode)
+    if args.landed:
+        state.pos_ned[2] = 0.0
+    sim = SimPx4(args.port, state=state).start()
+    print(f"stand-in PX4 sending to udp 127.0.0.1:{args.port}, mode {args.mode}; Ctrl-C stops",
+          flush=True)
+    seen = 0
+    try:
+        while True:
+            time.sleep(0.1)
+            for t, mode, why in sim.mode_log[seen:]:
+                print(f"{t:.3f} mode {mode} ({why})", flush=True)
+            seen = len(sim.mode_log)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,351 @@
+"""The Intel RealSense D435i (colour + depth) through pyrealsense2, live or from a recording.
+
+The only module that imports ``pyrealsense2``, and only when a RealSense source is opened:
+everything else works without the SDK (it has no aarch64 wheel for Python >= 3.11; on the
+Pi it is built from librealsense's source, see the README).
+
+What it does, per the runtime issue:
+
+- colour (BGR8) and depth (Z16) at the configured resolutions and rates, IMU off unless
+  asked for; frames are copied out of the SDK's buffers before they leave this module;
+- the calibration the device reports (both intrinsics, depth→colour extrinsics, depth
+  scale) as :class:`app.camera.CameraModel`, so depth pixels are projected per pixel
+  (no ``rs.align``, which costs a full-frame remap per frame);
+- capture times on the monotonic clock, corrected for the time the frame spent between the
+  sensor and us when the device stamps in host time (``global_time`` domain);
+- recovery of a live camera: a stall longer than ``frame_timeout_ms`` restarts the
+  pipeline; after ``restarts_before_reset`` failed restarts the device gets a USB hardware
+  reset; waits double from ``backoff_initial_s`` to ``backoff_max_s``; no frame for
+  ``give_up_s`` raises :class:`CameraLost` (the service exits and systemd restarts it).
+  Meanwhile the flight side sees no new decisions and acts by its dead-man rule.
+
+A RealSense recording (``.db3`` from SDK 2.59's recorder, ``.bag`` from older ones) plays
+through the same pipeline, frame by frame (not in real time: the caller paces it).
+
+Facts used (librealsense 2.59 headers and docs): ``rs2_extrinsics.rotation`` is a
+column-major 3x3 matrix; depth units come from the depth sensor's ``depth_units`` option
+(``get_depth_scale``); ``try_wait_for_frames`` returns ``(False, …)`` on timeout instead of
+raising; a playback device reports ``playback_status.stopped`` at its end.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.camera import CameraModel, Intrinsics
+from app.config import CaptureConfig
+from app.errors import SourceError
+from app.perception import Frame
+from app.sources import FrameSource
+
+log = logging.getLogger(__name__)
+
+RECORDING_EXTS = {".bag", ".db3"}
+_MAX_TRANSPORT_S = 0.5  # a host-time stamp further back than this is not believed
+
+
+class CameraLost(SourceError):
+    """The camera delivered no frame for ``give_up_s`` despite restarts and resets."""
+
+
+def _rs() -> Any:
+    try:
+        import pyrealsense2 as rs
+    except ImportError:
+        raise SourceError(
+            "the RealSense camera needs pyrealsense2: pip install 'midair[realsense]' "
+            "(on a Pi 4, build it from librealsense's source, see the README)"
+        ) from None
+    return rs
+
+
+def _intrinsics(profile: Any) -> Intrinsics:
+    i = profile.as_video_stream_profile().get_intrinsics()
+    return Intrinsics(int(i.width), int(i.height), float(i.fx), float(i.fy), float(i.ppx), float(i.ppy))
+
+
+def camera_model(profile: Any) -> CameraModel:
+    """The calibration of a started pipeline: intrinsics, depth→colour extrinsics, depth scale."""
+    rs = _rs()
+    color = profile.get_stream(rs.stream.color)
+    depth = profile.get_stream(rs.stream.depth)
+    ext = depth.get_extrinsics_to(color)
+    rotation = np.asarray(ext.rotation, float).reshape(3, 3).T  # column-major in the SDK
+    scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
+    return CameraModel(_intrinsics(color), _intrinsics(depth), rotation,
+                       np.asarray(ext.translation, float), scale)
+
+
+class RealSenseSource(FrameSource):
+    """The D435i (``path=None``) or a RealSense recording file, as a :class:`FrameSource`.
+
+    ``Frame.t_s`` is the monotonic capture time for the live camera (``live`` is True:
+    the runtime neither paces nor re-stamps it) and seconds since the first frame for a
+    recording. Frames without both colour and depth are passed with ``depth=None``.
+    """
+
+    def __init__(self, cfg: CaptureConfig, path: Path | None = None) -> None:
+        self.cfg = cfg
+        self.path = path
+        self.live = path is None
+        self.has_depth = True
+        self.name = "d435i" if path is None else path.stem
+        self.fps = float(cfg.color_fps)
+        self.restarts = 0  # pipeline restarts after a stall
+        self.resets = 0  # USB hardware resets
+        self.last_gyro: tuple[float, float, float] | None = None  # rad/s, with enable_imu
+        self._rs = _rs()
+        self._pipeline: Any = None
+        self._profile: Any = None
+        self._t0_hw: float | None = None
+        if path is not None:
+            if not path.is_file():
+                raise SourceError(f"{path}: no such RealSense recording")
+            if path.suffix.lower() not in RECORDING_EXTS:
+                raise SourceError(f"{path}: a RealSense recording ends in .db3 or .bag")
+        self._start(first=True)
+
+    # ------------------------------------------------------------------ pipeline
+
+    def _config(self) -> Any:
+        rs, c = self._rs, self.cfg
+        config = rs.config()
+        if self.path is not None:
+            config.enable_device_from_file(str(self.path), repeat_playback=False)
+            config.enable_stream(rs.stream.color)
+            config.enable_stream(rs.stream.depth)
+            return config
+        if c.serial:
+            config.enable_device(c.serial)
+        config.enable_stream(rs.stream.color, c.color_width, c.color_height, rs.format.bgr8, c.color_fps)
+        config.enable_stream(rs.stream.depth, c.depth_width, c.depth_height, rs.format.z16, c.depth_fps)
+        if c.enable_imu:
+            config.enable_stream(rs.stream.accel)
+            config.enable_stream(rs.stream.gyro)
+        return config
+
+    def _start(self, first: bool = False) -> None:
+        rs = self._rs
+        if self.live and first and len(rs.context().query_devices()) == 0:
+            raise SourceError("no RealSense camera found: is the D435i on a USB 3 port "
+                              "(lsusb lists 8086:0b3a) and the udev rule installed?")
+        pipeline = rs.pipeline()
+        try:
+            profile = pipeline.start(self._config())
+        except RuntimeError as exc:
+            if first:
+                what = str(self.path) if self.path else f"RealSense camera {self.cfg.serial or ''}".strip()
+                raise SourceError(f"{what}: cannot be started: {exc}") from None
+            raise
+        self._pipeline, self._profile = pipeline, profile
+        if self.path is not None:
+            playback = profile.get_device().as_playback()
+            playback.set_real_time(False)  # every frame, paced by the caller
+            color = profile.get_stream(rs.stream.color).as_video_stream_profile()
+            self.fps = float(color.fps()) or self.fps
+        self.camera = camera_model(profile)
+        if first:
+            log.info("camera %s: colour %dx%d, depth %dx%d, depth scale %.4g m",
+                     self.name, self.camera.color.width, self.camera.color.height,
+                     self.camera.depth.width, self.camera.depth.height, self.camera.depth_scale_m)
+
+    def _stop(self) -> None:
+        if self._pipeline is not None:
+            try:
+                self._pipeline.stop()
+            except RuntimeError as exc:  # already stopped, or the device vanished
+                log.debug("pipeline stop: %s", exc)
+            self._pipeline = None
+
+    def close(self) -> None:
+        self._stop()
+
+    def _ended(self) -> bool:
+        """A recording played to its end."""
+        if self.path is None or self._profile is None:
+            return False
+        playback = self._profile.get_device().as_playback()
+        return bool(playback.current_status() == self._rs.playback_status.stopped)
+
+    # ------------------------------------------------------------------ frames
+
+    def __len__(self) -> int:
+        return 0  # unknown: a recording's duration is the recorder's wall time, not its frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        index = 0
+        stalled_since: float | None = None
+        failures = 0
+        backoff = self.cfg.backoff_initial_s
+        timeout_ms = int(self.cfg.frame_timeout_ms)
+        if self._pipeline is None:
+            self._start()  # a second pass over a recording starts it again
+            self._t0_hw = None
+        try:
+            while True:
+                if self._pipeline is None:
+                    ok, frames = False, None
+                else:
+                    try:
+                        ok, frames = self._pipeline.try_wait_for_frames(timeout_ms)
+                    except RuntimeError as exc:  # device gone mid-wait
+                        log.warning("camera: %s", exc)
+                        ok, frames = False, None
+                if ok:
+                    frame = self._to_frame(frames, index + 1)
+                    if frame is None:
+                        continue  # an IMU-only frameset
+                    if stalled_since is not None:
+                        log.warning("camera: frames again after %.1f s", time.monotonic() - stalled_since)
+                    stalled_since, failures, backoff = None, 0, self.cfg.backoff_initial_s
+                    index += 1
+                    yield frame
+                    continue
+                if self._ended():
+                    return
+                now = time.monotonic()
+                if stalled_since is None:
+                    stalled_since = now - timeout_ms / 1000.0
+                    log.warning("camera: no frame for %d ms", timeout_ms)
+                if now - stalled_since >= self.cfg.give_up_s:
+                    raise CameraLost(f"camera {self.name}: no frame for {now - stalled_since:.1f} s "
+                                     f"after {self.restarts} restarts and {self.resets} resets")
+                self._recover(failures)
+                failures += 1
+                time.sleep(min(backoff, max(0.0, stalled_since + self.cfg.give_up_s - time.monotonic())))
+                backoff = min(backoff * 2.0, self.cfg.backoff_max_s)
+        finally:
+            self._stop()
+
+    def _recover(self, failures: int) -> None:
+        """Restart the pipeline; after ``restarts_before_reset`` failures, reset the device."""
+        self._stop()
+        if self.live and failures >= self.cfg.restarts_before_reset:
+            self.resets += 1
+            log.warning("camera: USB hardware reset (attempt %d)", self.resets)
+            try:
+                for dev in self._rs.context().query_devices():
+                    serial = dev.get_info(self._rs.camera_info.serial_number)
+                    if not self.cfg.serial or serial == self.cfg.serial:
+                        dev.hardware_reset()
+            except RuntimeError as exc:
+                log.warning("camera: hardware reset failed: %s", exc)
+            return  # the device re-enumerates; the next attempt starts the pipeline
+        self.restarts += 1
+        log.warning("camera: restarting the pipeline (attempt %d)", self.restarts)
+        try:
+            self._start()
+        except RuntimeError as exc:
+            log.warning("camera: restart failed: %s", exc)
+
+    def _to_frame(self, frames: Any, index: int) -> Frame | None:
+        rs = self._rs
+        if self.cfg.enable_imu:
+            gyro = frames.first_or_default(rs.stream.gyro)
+            if gyro:
+                g = gyro.as_motion_frame().get_motion_data()
+                self.last_gyro = (float(g.x), float(g.y), float(g.z))
+        color = frames.get_color_frame()
+        if not color:
+            return None
+        depth = frames.get_depth_frame()
+        arrived = time.monotonic()
+        image = np.asanyarray(color.get_data()).copy()  # our own memory, not the SDK's
+        if image.ndim == 3 and image.shape[2] == 3 and color.get_profile().format() == rs.format.rgb8:
+            image = image[:, :, ::-1].copy()
+        depth_mm = np.asanyarray(depth.get_data()).copy() if depth else None
+        stamp_ms = float(color.get_timestamp())
+        if self.live:
+            t = arrived
+            if color.get_frame_timestamp_domain() == rs.timestamp_domain.global_time:
+                transport = time.time() - stamp_ms / 1000.0  # host clock, so comparable
+                if 0.0 <= transport <= _MAX_TRANSPORT_S:
+                    t = arrived - transport
+        else:
+            if self._t0_hw is None:
+                self._t0_hw = stamp_ms
+            t = (stamp_ms - self._t0_hw) / 1000.0
+        return Frame(index, t, image, depth_mm)
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_realsense_recording(frames: Iterable[Frame], camera: CameraModel, fps: float,
+                              path: Path) -> Path:
+    """Write frames (colour BGR8, depth uint16) as a RealSense recording with pyrealsense2's
+    own recorder and a software device carrying ``camera``'s calibration.
+
+    SDK 2.59 writes a ROS 2 ``.db3`` file whatever the name; give ``path`` that suffix.
+    """
+    rs = _rs()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    device = rs.software_device()
+    depth_sensor = device.add_sensor("Depth")
+    color_sensor = device.add_sensor("Color")
+
+    def stream(kind: Any, uid: int, intr: Intrinsics, fmt: Any, bpp: int) -> Any:
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid = kind, 0, uid
+        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = intr.width, intr.height, int(round(fps)), bpp, fmt
+        ri = rs.intrinsics()
+        ri.width, ri.height, ri.fx, ri.fy, ri.ppx, ri.ppy = (
+            intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy)
+        ri.model, ri.coeffs = rs.distortion.none, [0.0] * 5
+        vs.intrinsics = ri
+        return vs
+
+    d_profile = depth_sensor.add_video_stream(stream(rs.stream.depth, 0, camera.depth, rs.format.z16, 2))
+    c_profile = color_sensor.add_video_stream(stream(rs.stream.color, 1, camera.color, rs.format.bgr8, 3))
+    depth_sensor.add_read_only_option(rs.option.depth_units, camera.depth_scale_m)
+    ext = rs.extrinsics()
+    ext.rotation = np.asarray(camera.rotation, float).T.flatten().tolist()  # column-major
+    ext.translation = np.asarray(camera.translation_m, float).tolist()
+    d_profile.register_extrinsics_to(c_profile, ext)
+    recorder = rs.recorder(str(path), device)
+    sink = rs.frame_queue(64)
+    for sensor, profile in ((depth_sensor, d_profile), (color_sensor, c_profile)):
+        sensor.open(profile)
+        sensor.start(sink)
+    try:
+        for k, frame in enumerate(frames):
+            stamp_ms = k * 1000.0 / fps
+            if frame.depth is not None:
+                depth = np.ascontiguousarray(frame.depth, np.uint16)
+                _push(rs, depth_sensor, d_profile, depth, 2, stamp_ms, k)
+            color = np.ascontiguousarray(frame.color, np.uint8)
+            _push(rs, color_sensor, c_profile, color, 3, stamp_ms, k)
+            while sink.poll_for_frame():
+                pass  # the recorder has them; keep the queue from filling
+    finally:
+        for sensor in (depth_sensor, color_sensor):
+            sensor.stop()
+            sensor.close()
+        del recorder  # closes the file
+    if not path.is_file() or path.stat().st_size == 0:
+        raise SourceError(f"{path}: the RealSense recorder wrote nothing")
+    return path
+
+
+def _push(rs: Any, sensor: Any, profile: Any, pixels: np.ndarray, bpp: int, stamp_ms: float,
+          number: int) -> None:
+    f = rs.software_video_frame()
+    f.pixels = pixels
+    f.stride = pixels.shape[1] * bpp
+    f.bpp = bpp
+    f.timestamp = stamp_ms
+    f.domain = rs.timestamp_domain.hardware_clock
+    f.frame_number = number
+    f.profile = profile.as_video_stream_profile()
+    sensor.on_video_frame(f)
+
+
+def is_realsense_recording(path: Path) -> bool:
+    return path.suffix.lower() in RECORDING_EXTS
+
