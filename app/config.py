@@ -231,7 +231,8 @@ class CaptureConfig:
     backoff_initial_s: float = param(0.5, "first wait between recovery attempts, s", gt=0)
     backoff_max_s: float = param(4.0, "longest wait between recovery attempts (doubling), s", gt=0)
     give_up_s: float = param(
-        20.0, "no frame for this long: exit with an error (systemd restarts the service), s", gt=0
+        10.0, "no frame for this long: exit with an error (systemd restarts the service; its "
+        "watchdog, 15 s, must stay longer), s", gt=0
     )
 
 

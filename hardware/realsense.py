@@ -70,16 +70,86 @@ def _intrinsics(profile: Any) -> Intrinsics:
     return Intrinsics(int(i.width), int(i.height), float(i.fx), float(i.fy), float(i.ppx), float(i.ppy))
 
 
-def camera_model(profile: Any) -> CameraModel:
-    """The calibration of a started pipeline: intrinsics, depth→colour extrinsics, depth scale."""
-    rs = _rs()
-    color = profile.get_stream(rs.stream.color)
-    depth = profile.get_stream(rs.stream.depth)
+def camera_model(color: Any, depth: Any, depth_scale_m: float) -> CameraModel:
+    """The calibration from the colour and depth stream profiles and the depth scale."""
     ext = depth.get_extrinsics_to(color)
     rotation = np.asarray(ext.rotation, float).reshape(3, 3).T  # column-major in the SDK
-    scale = float(profile.get_device().first_depth_sensor().get_depth_scale())
     return CameraModel(_intrinsics(color), _intrinsics(depth), rotation,
-                       np.asarray(ext.translation, float), scale)
+                       np.asarray(ext.translation, float), float(depth_scale_m))
+
+
+class _Live:
+    """The D435i through ``rs.pipeline`` (its frame syncer and queue)."""
+
+    def __init__(self, rs: Any, config: Any) -> None:
+        self.pipeline = rs.pipeline()
+        profile = self.pipeline.start(config)
+        self.device = profile.get_device()
+        self.color = profile.get_stream(rs.stream.color)
+        self.depth = profile.get_stream(rs.stream.depth)
+        self.depth_scale = self.device.first_depth_sensor().get_depth_scale()
+
+    def wait(self, timeout_ms: int) -> tuple[bool, Any]:
+        return self.pipeline.try_wait_for_frames(timeout_ms)
+
+    def ended(self) -> bool:
+        return False
+
+    def stop(self) -> None:
+        self.pipeline.stop()
+
+
+class _Playback:
+    """A recording through its playback device's sensors and a syncer, not ``rs.pipeline``:
+    the pipeline starts the playback in real time before ``set_real_time(False)`` can be
+    called, so its first frames can be dropped (seen here, 1 run in 5); sensor callbacks
+    lose nothing (librealsense maintainers, issue #1180), and a non-real-time playback
+    waits for the syncer's queue."""
+
+    def __init__(self, rs: Any, path: Path) -> None:
+        self.rs = rs
+        self.path = path
+        self.ctx = rs.context()
+        self.device = self.ctx.load_device(str(path))
+        self.playback = self.device.as_playback()
+        self.playback.set_real_time(False)  # before any sensor starts: every frame, in order
+        self.syncer = rs.syncer(4)
+        self.sensors = []
+        self.color: Any = None
+        self.depth: Any = None
+        for sensor in self.device.query_sensors():
+            profiles = [p for p in sensor.get_stream_profiles()
+                        if p.stream_type() in (rs.stream.color, rs.stream.depth)]
+            if not profiles:
+                continue
+            for prof in profiles:
+                if prof.stream_type() == rs.stream.color and self.color is None:
+                    self.color = prof
+                elif prof.stream_type() == rs.stream.depth and self.depth is None:
+                    self.depth = prof
+            self.sensors.append((sensor, profiles))
+        if self.color is None or self.depth is None:
+            self.ctx.unload_device(str(path))
+            raise RuntimeError("the recording needs a colour and a depth stream")
+        self.depth_scale = self.device.first_depth_sensor().get_depth_scale()
+        for sensor, profiles in self.sensors:
+            sensor.open(profiles)
+            sensor.start(self.syncer)
+
+    def wait(self, timeout_ms: int) -> tuple[bool, Any]:
+        return self.syncer.try_wait_for_frames(timeout_ms)
+
+    def ended(self) -> bool:
+        return bool(self.playback.current_status() == self.rs.playback_status.stopped)
+
+    def stop(self) -> None:
+        for sensor, _ in self.sensors:
+            for call in (sensor.stop, sensor.close):
+                try:
+                    call()
+                except RuntimeError as exc:  # already stopped at the end of the file
+                    log.debug("playback sensor: %s", exc)
+        self.ctx.unload_device(str(self.path))
 
 
 class RealSenseSource(FrameSource):
@@ -101,8 +171,8 @@ class RealSenseSource(FrameSource):
         self.resets = 0  # USB hardware resets
         self.last_gyro: tuple[float, float, float] | None = None  # rad/s, with enable_imu
         self._rs = _rs()
-        self._pipeline: Any = None
-        self._profile: Any = None
+        self._backend: _Live | _Playback | None = None
+        self._pending_depth: tuple[float, np.ndarray] | None = None  # depth that came alone
         self._t0_hw: float | None = None
         if path is not None:
             if not path.is_file():
@@ -116,11 +186,6 @@ class RealSenseSource(FrameSource):
     def _config(self) -> Any:
         rs, c = self._rs, self.cfg
         config = rs.config()
-        if self.path is not None:
-            config.enable_device_from_file(str(self.path), repeat_playback=False)
-            config.enable_stream(rs.stream.color)
-            config.enable_stream(rs.stream.depth)
-            return config
         if c.serial:
             config.enable_device(c.serial)
         config.enable_stream(rs.stream.color, c.color_width, c.color_height, rs.format.bgr8, c.color_fps)
@@ -135,43 +200,44 @@ class RealSenseSource(FrameSource):
         if self.live and first and len(rs.context().query_devices()) == 0:
             raise SourceError("no RealSense camera found: is the D435i on a USB 3 port "
                               "(lsusb lists 8086:0b3a) and the udev rule installed?")
-        pipeline = rs.pipeline()
         try:
-            profile = pipeline.start(self._config())
+            backend: _Live | _Playback = (_Live(rs, self._config()) if self.path is None
+                                          else _Playback(rs, self.path))
         except RuntimeError as exc:
             if first:
-                what = str(self.path) if self.path else f"RealSense camera {self.cfg.serial or ''}".strip()
+                what = str(self.path) if self.path else f"RealSense camera {self.cfg.serial}".strip()
                 raise SourceError(f"{what}: cannot be started: {exc}") from None
             raise
-        self._pipeline, self._profile = pipeline, profile
+        self._backend = backend
+        self._pending_depth = None
         if self.path is not None:
-            playback = profile.get_device().as_playback()
-            playback.set_real_time(False)  # every frame, paced by the caller
-            color = profile.get_stream(rs.stream.color).as_video_stream_profile()
-            self.fps = float(color.fps()) or self.fps
-        self.camera = camera_model(profile)
+            self.fps = float(backend.color.fps()) or self.fps
+        self.camera = camera_model(backend.color, backend.depth, backend.depth_scale)
         if first:
             log.info("camera %s: colour %dx%d, depth %dx%d, depth scale %.4g m",
                      self.name, self.camera.color.width, self.camera.color.height,
                      self.camera.depth.width, self.camera.depth.height, self.camera.depth_scale_m)
 
     def _stop(self) -> None:
-        if self._pipeline is not None:
+        if self._backend is not None:
             try:
-                self._pipeline.stop()
+                self._backend.stop()
             except RuntimeError as exc:  # already stopped, or the device vanished
-                log.debug("pipeline stop: %s", exc)
-            self._pipeline = None
+                log.debug("camera stop: %s", exc)
+            self._backend = None
 
     def close(self) -> None:
         self._stop()
 
+    @property
+    def playback(self) -> Any:
+        """The SDK's playback device of a recording (None for the live camera): its
+        ``pause()``/``resume()`` stall the stream the way a flaky USB link does."""
+        return self._backend.playback if isinstance(self._backend, _Playback) else None
+
     def _ended(self) -> bool:
         """A recording played to its end."""
-        if self.path is None or self._profile is None:
-            return False
-        playback = self._profile.get_device().as_playback()
-        return bool(playback.current_status() == self._rs.playback_status.stopped)
+        return self._backend is not None and self._backend.ended()
 
     # ------------------------------------------------------------------ frames
 
@@ -184,16 +250,16 @@ class RealSenseSource(FrameSource):
         failures = 0
         backoff = self.cfg.backoff_initial_s
         timeout_ms = int(self.cfg.frame_timeout_ms)
-        if self._pipeline is None:
+        if self._backend is None:
             self._start()  # a second pass over a recording starts it again
             self._t0_hw = None
         try:
             while True:
-                if self._pipeline is None:
+                if self._backend is None:
                     ok, frames = False, None
                 else:
                     try:
-                        ok, frames = self._pipeline.try_wait_for_frames(timeout_ms)
+                        ok, frames = self._backend.wait(timeout_ms)
                     except RuntimeError as exc:  # device gone mid-wait
                         log.warning("camera: %s", exc)
                         ok, frames = False, None
@@ -251,16 +317,26 @@ class RealSenseSource(FrameSource):
             if gyro:
                 g = gyro.as_motion_frame().get_motion_data()
                 self.last_gyro = (float(g.x), float(g.y), float(g.z))
-        color = frames.get_color_frame()
+        if frames.is_frameset():
+            frames = frames.as_frameset()
+        color = frames.first_or_default(rs.stream.color)
+        depth = frames.first_or_default(rs.stream.depth)
         if not color:
+            if depth:  # the syncer let it go alone: keep it for the colour frame that follows
+                self._pending_depth = (float(depth.get_timestamp()),
+                                       np.asanyarray(depth.get_data()).copy())
             return None
-        depth = frames.get_depth_frame()
         arrived = time.monotonic()
         image = np.asanyarray(color.get_data()).copy()  # our own memory, not the SDK's
         if image.ndim == 3 and image.shape[2] == 3 and color.get_profile().format() == rs.format.rgb8:
             image = image[:, :, ::-1].copy()
-        depth_mm = np.asanyarray(depth.get_data()).copy() if depth else None
         stamp_ms = float(color.get_timestamp())
+        depth_mm = np.asanyarray(depth.get_data()).copy() if depth else None
+        if depth_mm is None and self._pending_depth is not None:
+            t_depth, pending = self._pending_depth
+            if abs(t_depth - stamp_ms) <= 500.0 / self.fps:  # the same exposure, half a frame
+                depth_mm = pending
+        self._pending_depth = None
         if self.live:
             t = arrived
             if color.get_frame_timestamp_domain() == rs.timestamp_domain.global_time:
