@@ -31,6 +31,9 @@ class Notifier:
         self._sock: socket.socket | None = None
         if self.address:
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+            # never block the event loop: a datagram socket's queue is short (net.unix.
+            # max_dgram_qlen, 10 by default) and a message that does not fit is dropped
+            self._sock.setblocking(False)
 
     @property
     def enabled(self) -> bool:

@@ -229,21 +229,27 @@ class FlightRecord:
     def _save_frame(self, payload: tuple[int, float, Frame], frames_csv: IO[str] | None) -> None:
         number, t, frame = payload
         try:
-            if not self._room():
+            if not self._saving:
                 self.frames_refused += 1
                 return
             params = [cv2.IMWRITE_PNG_COMPRESSION, self.cfg.png_compression]
-            name = f"{number:06d}.png"
-            ok, buf = cv2.imencode(".png", frame.color, params)
+            ok, color = cv2.imencode(".png", frame.color, params)
             if not ok:
                 raise OSError(f"PNG encoding of frame {number} failed")
-            (self.folder / "color" / name).write_bytes(buf.tobytes())
-            self._written += len(buf)
+            depth = None
             if self.cfg.frames == "color+depth" and frame.depth is not None:
-                ok, dbuf = cv2.imencode(".png", frame.depth, params)
-                if ok:
-                    (self.folder / "depth" / name).write_bytes(dbuf.tobytes())
-                    self._written += len(dbuf)
+                ok, depth = cv2.imencode(".png", frame.depth, params)
+                if not ok:
+                    raise OSError(f"PNG encoding of depth frame {number} failed")
+            size = len(color) + (len(depth) if depth is not None else 0)
+            if not self._room(size):
+                self.frames_refused += 1
+                return
+            name = f"{number:06d}.png"
+            (self.folder / "color" / name).write_bytes(color.tobytes())
+            if depth is not None:
+                (self.folder / "depth" / name).write_bytes(depth.tobytes())
+            self._written += size
             if frames_csv is not None:
                 frames_csv.write(f"{number},{t:.6f}\n")
             self._last_saved = number
@@ -251,19 +257,18 @@ class FlightRecord:
             with self._lock:
                 self._pending_frames -= 1
 
-    def _room(self) -> bool:
-        """May one more frame be written? Deletes older runs to make room."""
-        if not self._saving:
-            return False
+    def _room(self, size: int) -> bool:
+        """May ``size`` more bytes be written? Deletes older runs to make room."""
         limit = self.cfg.max_total_mb * MB
-        if self._others + self._written > limit:
-            self._others = self._prune(self._written)
-        if self._others + self._written > limit:
+        text = 64 * 1024  # headroom for the text logs still to come
+        if self._others + self._written + size + text > limit:
+            self._others = self._prune(self._written + size + text)
+        if self._others + self._written + size + text > limit:
             self._stop_saving(f"the record limit of {self.cfg.max_total_mb:g} MB is reached")
             return False
-        if self._numbered % 30 == 1:  # a statvfs now and then, not per frame
+        if self._numbered % 30 == 1 or self._written == 0:  # a statvfs now and then
             free = shutil.disk_usage(self.parent).free
-            if free < self.cfg.min_free_mb * MB:
+            if free - size < self.cfg.min_free_mb * MB:
                 self._stop_saving(f"the disk has only {free / MB:.0f} MB free")
                 return False
         return True

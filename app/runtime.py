@@ -191,6 +191,8 @@ async def capture(source: FrameSource, frames: LatestSlot[Frame], stop: asyncio.
                     delay = t0 + k * period - time.monotonic()
                     if delay > 0:
                         await asyncio.sleep(delay)
+                    elif delay < -period:  # late (after a stall): play on from now, no burst
+                        t0, k = time.monotonic(), 0
                 frame = replace(frame, t_s=time.monotonic())
             stats.frames_in += 1
             frames.put(frame)

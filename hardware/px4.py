@@ -101,9 +101,11 @@ class Px4Link:
         try:
             await self._mavsdk.add_any_connection(self.url)
         except Exception as exc:  # the binding raises its own types for a bad URL
+            await self.close()
             raise FlightLinkError(f"connection {self.url!r} rejected: {exc}") from None
         system = await self._mavsdk.first_autopilot(timeout_s)
         if system is None:
+            await self.close()
             raise FlightLinkError(f"no autopilot answered on {self.url} within {timeout_s:g} s")
         self._system = system
         self._telemetry = TelemetryAsync(system)
@@ -122,10 +124,24 @@ class Px4Link:
         self._tel.connected = True
 
     async def close(self) -> None:
+        """Stop the telemetry tasks and destroy the MAVSDK instance now, on this loop: left
+        to the garbage collector, its destructor can run at any moment, from any thread,
+        after the loop is gone, and the C++ core then aborts the process (seen here)."""
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._tasks.clear()
+        mavsdk = getattr(self, "_mavsdk", None)
+        if mavsdk is not None:
+            self._mavsdk = None
+            # plugins first (they hold the System), then MAVSDK itself; mavsdk 4 aborts
+            # the process when a plugin is still alive at that point
+            for name in ("_telemetry", "_offboard", "_action", "_mission", "_utility"):
+                plugin = self.__dict__.pop(name, None)
+                if plugin is not None:
+                    plugin.destroy()
+            self.__dict__.pop("_system", None)
+            await asyncio.get_running_loop().run_in_executor(None, mavsdk.destroy)
 
     # ------------------------------------------------------------------ telemetry
 

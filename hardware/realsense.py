@@ -137,7 +137,12 @@ class _Playback:
             sensor.start(self.syncer)
 
     def wait(self, timeout_ms: int) -> tuple[bool, Any]:
-        return self.syncer.try_wait_for_frames(timeout_ms)
+        # in slices, so the end of the file is noticed at once instead of after a timeout
+        deadline = time.monotonic() + timeout_ms / 1000.0
+        while True:
+            ok, frames = self.syncer.try_wait_for_frames(min(timeout_ms, 50))
+            if ok or self.ended() or time.monotonic() >= deadline:
+                return ok, frames
 
     def ended(self) -> bool:
         return bool(self.playback.current_status() == self.rs.playback_status.stopped)
