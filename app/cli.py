@@ -67,12 +67,18 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--link", action="store_true",
                    help="instead: the offboard path against the simulated PX4 over UDP "
                    "(setpoint rate, decision-to-wire latency)")
-    b.add_argument("--seconds", type=float, default=10.0, help="with --link: how long, s")
+    b.add_argument("--fly", action="store_true",
+                   help="instead: the whole flight process (capture, perception thread, offboard, "
+                   "flight record) on a generated recording against the simulated PX4; "
+                   "per-frame latency capture -> setpoint")
+    b.add_argument("--fps", type=float, default=60.0, help="with --fly: the recording's frame rate")
+    b.add_argument("--seconds", type=float, default=10.0, help="with --link or --fly: how long, s")
     with_config(b)
 
     f = sub.add_parser("fly", help="the flight process: camera -> perception -> PX4 offboard")
-    f.add_argument("--camera", help="realsense (the D435i), or a recording folder, video or "
-                   "RealSense recording (.db3/.bag) played as the camera (default: capture.camera)")
+    f.add_argument("--camera", help="realsense (the D435i); synthetic (a ball thrown at the "
+                   "vehicle, rendered live); or a recording folder, video or RealSense recording "
+                   "(.db3/.bag) played as the camera (default: capture.camera)")
     f.add_argument("--connection", help="MAVSDK URL (default: flight.connection of the config)")
     f.add_argument("--mode", choices=("guard", "shadow", "test-flight"),
                    help="override flight.mode")
@@ -176,6 +182,12 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
 def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from app.bench import format_bench, run_bench
 
+    if args.fly:
+        from app.linkbench import run_fly_bench
+
+        r = run_fly_bench(cfg, fps=args.fps, seconds=args.seconds)
+        print(json.dumps(r, indent=None if args.json else 2))
+        return 0
     if args.link:
         from app.linkbench import run_link_bench
 
@@ -220,6 +232,10 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
         from hardware.realsense import RealSenseSource
 
         source = RealSenseSource(cfg.capture)
+    elif camera == "synthetic":
+        from app.synthetic import SyntheticSource, ball_scene
+
+        source = SyntheticSource(ball_scene(), "synthetic ball")
     else:
         source = open_source(camera, capture=cfg.capture)
     record = None

@@ -69,6 +69,7 @@ class Decision:
     frame: int = 0  # that frame's number in its source (latency accounting)
     t_perceived_s: float = math.nan  # monotonic time stages 1-3 finished, s
     t_decided_s: float = math.nan  # monotonic time stage 4 finished, s
+    t_started_s: float = math.nan  # monotonic time perception began (on the next frame), s
 
 
 @dataclass(frozen=True)

@@ -1,14 +1,20 @@
-"""``midair bench --link``: the offboard path against the PX4-faithful vehicle over UDP.
+"""Benchmarks against the PX4-faithful vehicle over UDP.
 
-Feeds decisions at a perception-like rate, each with a distinct velocity, and measures on
-the vehicle's side when each first arrives: setpoint rate on the wire and the time from a
-decision to its setpoint on the wire (median, p99).
+``midair bench --link``: the offboard path alone. Feeds decisions at a perception-like rate,
+each with a distinct velocity, and measures on the vehicle's side when each first arrives:
+setpoint rate on the wire and the time from a decision to its setpoint on the wire.
+
+``midair bench --fly``: the whole flight process (:func:`app.runtime.fly`, with the flight
+record on as in flight) on a generated recording at the camera's frame rate: frames kept
+up with, per-frame latency capture → perceived → decided → setpoint sent.
 """
 
 from __future__ import annotations
 
 import asyncio
 import socket
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -91,3 +97,67 @@ async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) 
 def run_link_bench(cfg: Config, seconds: float = 10.0, decision_hz: float = 30.0,
                    rate_hz: float = 20.0) -> dict[str, object]:
     return asyncio.run(_run(cfg, seconds, decision_hz, rate_hz))
+
+
+def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict[str, object]:
+    """The flight process on a generated ``seconds``-long recording at ``fps`` (balls thrown
+    at the vehicle one after another), against the simulated PX4, flight record on."""
+    import dataclasses
+    import tempfile
+    from pathlib import Path
+
+    from app.record import FlightRecord
+    from app.runtime import fly
+    from app.sources import open_source
+    from app.synthetic import approach_scene, write_recording
+
+    if fps <= 0 or seconds < 2:
+        raise UsageError("bench --fly needs --fps > 0 and --seconds >= 2")
+    try:
+        from hardware.px4 import Px4Link
+        from hardware.sim_px4 import SimPx4  # noqa: F401 - run below as its own process
+    except ImportError as exc:
+        raise UsageError(f"bench --fly needs the dev extra (pymavlink, mavsdk): {exc}") from None
+
+    async def go(folder: Path) -> dict[str, object]:
+        source = open_source(folder)
+        record = FlightRecord(dataclasses.replace(cfg.record, dir=str(folder / "records")), cfg,
+                              source.camera).start()
+        port = _free_port()
+        # the vehicle in its own process, as PX4 is: it does not share our interpreter's lock
+        sim = subprocess.Popen([sys.executable, "-m", "hardware.sim_px4", "--port", str(port)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        link = Px4Link(f"udpin://0.0.0.0:{port}")
+        try:
+            await link.connect(timeout_s=10.0)
+            t0 = time.monotonic()
+            while not (link.snapshot().armed and link.snapshot().altitude_m):
+                if time.monotonic() - t0 > 10:
+                    raise UsageError("the simulated vehicle did not report armed and flying")
+                await asyncio.sleep(0.05)
+            stats = await fly(cfg, source, link, install_signals=False, record=record)
+        finally:
+            await link.close()
+            sim.terminate()
+            sim.wait(timeout=10)
+        summary = stats.summary()
+        record.close(summary)
+        summary["record"] = json.loads((record.folder / "summary.json").read_text())["record"]
+        return summary
+
+    import json
+
+    with tempfile.TemporaryDirectory(prefix="midair-bench-") as tmp:
+        folder = Path(tmp) / "rec"
+        frames = int(round(seconds * fps))
+        # a ball from 2 s out: 8 m at 4 m/s, so there is something to track and dodge at the end
+        scene = approach_scene((-0.4, -0.3, 4.0 * min(seconds, 3.0)), closing_mps=4.0,
+                               frames=frames, fps=fps)
+        scene = dataclasses.replace(scene, objects_3d=tuple(
+            dataclasses.replace(o, start_xyz_m=(o.start_xyz_m[0], o.start_xyz_m[1],
+                                                o.start_xyz_m[2] + 4.0 * max(0.0, seconds - 3.0)))
+            for o in scene.objects_3d))
+        write_recording(scene, folder)
+        result = asyncio.run(go(folder))
+    result["bench"] = {"fps": fps, "seconds": seconds, "frames": frames}
+    return result

@@ -46,6 +46,7 @@ from app.perception import Frame
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
+WRITER_NICE = 10  # the writer thread's niceness (Linux: per thread), relative to the rest
 _STREAMS = ("events", "telemetry", "decisions", "latency")
 
 
@@ -192,6 +193,10 @@ class FlightRecord:
     # ------------------------------------------------------------------ the writer thread
 
     def _writer(self) -> None:
+        try:  # the disk can wait, the flight cannot: this thread yields the CPU to the others
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WRITER_NICE)
+        except (AttributeError, OSError) as exc:
+            log.debug("record writer priority unchanged: %s", exc)
         files: dict[str, IO[str]] = {s: (self.folder / f"{s}.jsonl").open("a") for s in _STREAMS}
         frames_csv = None
         if self.cfg.frames != "none":

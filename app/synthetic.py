@@ -22,6 +22,7 @@ import numpy as np
 
 from app.camera import CameraModel, Intrinsics
 from app.perception import Frame
+from app.sources import FrameSource
 
 
 @dataclass(frozen=True)
@@ -72,10 +73,10 @@ class SyntheticScene:
 
 def approach_scene(start_xyz_m: tuple[float, float, float], closing_mps: float = 4.0,
                    frames: int = 75, seed: int = 2, diameter_m: float = 0.3,
-                   lateral_mps: tuple[float, float] = (0.0, 0.0)) -> SyntheticScene:
+                   lateral_mps: tuple[float, float] = (0.0, 0.0), fps: float = 30.0) -> SyntheticScene:
     """One object flying at the camera (a ball thrown at the drone), over a still camera."""
     return SyntheticScene(
-        frames=frames, seed=seed, pan_px_per_frame=0.5, objects=(),
+        fps=fps, frames=frames, seed=seed, pan_px_per_frame=0.5, objects=(),
         objects_3d=(SyntheticObject3D(1, start_xyz_m, (lateral_mps[0], lateral_mps[1], -closing_mps),
                                       diameter_m),),
     )
@@ -102,6 +103,31 @@ def _world(scene: SyntheticScene, rng: np.random.Generator) -> np.ndarray:
         img[t:horizon, x] = 70 + rng.normal(0, 12, horizon - t)
     # the lens's blur: real frames carry no detail finer than about a pixel
     return cv2.GaussianBlur(np.clip(img, 0, 255).astype(np.uint8), (0, 0), 1.0)
+
+
+def ball_scene(fps: float = 30.0) -> SyntheticScene:
+    """The desk demo: a 0.3 m ball thrown from 12.8 m at the upper left at 4 m/s, over a
+    still camera; 3.67 s (110 frames at 30 fps), dodged about 3 s in."""
+    return approach_scene((-0.4, -0.3, 12.8), closing_mps=4.0, frames=int(round(3.67 * fps)),
+                          fps=fps)
+
+
+class SyntheticSource(FrameSource):
+    """A scene rendered frame by frame as the camera (no files): colour, depth, calibration."""
+
+    def __init__(self, scene: SyntheticScene, name: str = "synthetic") -> None:
+        self.scene = scene
+        self.name = name
+        self.fps = scene.fps
+        self.has_depth = True
+        self.camera = scene.camera()
+
+    def __len__(self) -> int:
+        return self.scene.frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        for frame, _truth in render(self.scene):
+            yield frame
 
 
 def camera_homography(scene: SyntheticScene, k: int) -> np.ndarray:

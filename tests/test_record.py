@@ -35,10 +35,18 @@ def events(rec: FlightRecord) -> list[dict[str, object]]:
     return [json.loads(line) for line in (rec.folder / "events.jsonl").read_text().splitlines()]
 
 
+def saving(tmp_path: Path, **kw: object) -> RecordConfig:
+    return replace(RecordConfig(), dir=str(tmp_path), frames="color+depth", **kw)  # type: ignore[arg-type]
+
+
+def test_frames_are_not_saved_by_default() -> None:
+    assert RecordConfig().frames == "none"  # ~8 ms of CPU per frame: opt-in (README)
+
+
 def test_oldest_runs_go_first_and_frames_stop_at_the_limit(tmp_path: Path) -> None:
     runs = [old_run(tmp_path, f"2026-01-0{i}T00-00-00Z_1", 1.0) for i in range(1, 4)]
     (tmp_path / "notes.txt").write_text("not a run: never deleted")
-    cfg = replace(RecordConfig(), dir=str(tmp_path), max_total_mb=6.0, min_free_mb=0.0)
+    cfg = saving(tmp_path, max_total_mb=6.0, min_free_mb=0.0)
     rec = FlightRecord(cfg, Config()).start()
     assert all(r.exists() for r in runs)  # 3 MB fit under 6 MB
     for k in range(1, 9):
@@ -60,7 +68,7 @@ def test_oldest_runs_go_first_and_frames_stop_at_the_limit(tmp_path: Path) -> No
 
 
 def test_a_crash_loses_at_most_the_flush_interval(tmp_path: Path) -> None:
-    cfg = replace(RecordConfig(), dir=str(tmp_path), flush_s=0.2)
+    cfg = saving(tmp_path, flush_s=0.2)
     rec = FlightRecord(cfg).start()
     rec.event("takeoff", altitude_m=5.0)
     rec.telemetry({"mode": "position"})
@@ -72,7 +80,7 @@ def test_a_crash_loses_at_most_the_flush_interval(tmp_path: Path) -> None:
 
 
 def test_a_slow_disk_skips_frames_never_blocks(tmp_path: Path) -> None:
-    cfg = replace(RecordConfig(), dir=str(tmp_path), queue_frames=2, png_compression=9)
+    cfg = saving(tmp_path, queue_frames=2, png_compression=9)
     rec = FlightRecord(cfg).start()
     t0 = time.monotonic()
     numbers = [rec.frame(noisy_frame(k)) for k in range(1, 31)]
@@ -86,7 +94,7 @@ def test_a_slow_disk_skips_frames_never_blocks(tmp_path: Path) -> None:
 
 
 def test_low_disk_space_stops_frames_but_not_the_logs(tmp_path: Path) -> None:
-    cfg = replace(RecordConfig(), dir=str(tmp_path), min_free_mb=1e12)  # no disk is that free
+    cfg = saving(tmp_path, min_free_mb=1e12)  # no disk is that free
     rec = FlightRecord(cfg).start()
     assert rec.frame(noisy_frame(1)) == 1
     time.sleep(0.2)

@@ -28,14 +28,14 @@ from app.perception import Perception  # noqa: E402
 from app.record import FlightRecord  # noqa: E402
 from app.runtime import LatestSlot, fly  # noqa: E402
 from app.sources import open_source  # noqa: E402
-from app.synthetic import approach_scene, render, write_recording  # noqa: E402
+from app.synthetic import ball_scene, render, write_recording  # noqa: E402
 from hardware.sim_px4 import SimPx4, SimState  # noqa: E402
 from tests.conftest import free_udp_port, vehicle, wait_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 # 1.2 s of quiet sky first (the offboard path warms up), then a ball from the upper left;
 # the first evasion comes at frame ~90 (3 s)
-BALL = approach_scene((-0.4, -0.3, 12.8), closing_mps=4.0, frames=110)
+BALL = ball_scene()
 
 
 def flying(v: Any) -> bool:
@@ -76,8 +76,8 @@ async def test_approaching_ball_makes_the_vehicle_evade_and_the_record_replays(
     listener.start()
     notifier = Notifier({"NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "400000"})
     source = open_source(ball)
-    record = FlightRecord(replace(RecordConfig(), dir=str(tmp_path / "records")), Config(),
-                          source.camera).start()
+    record = FlightRecord(replace(RecordConfig(), dir=str(tmp_path / "records"), frames="color+depth"),
+                          Config(), source.camera).start()
     async with vehicle(SimState(mode="position"), flying) as (sim, link):
         stats = await fly(Config(), source, link, install_signals=False, record=record,
                           notifier=notifier)
