@@ -243,7 +243,11 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
         from app.camera import camera_from_config
 
         record = FlightRecord(record_cfg, cfg, source.camera or camera_from_config(cfg.camera))
-        record.start()
+        try:
+            record.start()
+        except OSError as exc:  # a guard that will not fly without its logs protects no one
+            log.error("flight record disabled: %s cannot be written: %s", record_cfg.dir, exc)
+            record = None
     summary: dict[str, object] = {}
 
     async def run() -> None:

@@ -85,6 +85,10 @@ class _Live:
         self.pipeline = rs.pipeline()
         profile = self.pipeline.start(config)
         self.device = profile.get_device()
+        for sensor in self.device.query_sensors():
+            # hardware timestamps mapped to the host clock: capture times net of USB delay
+            if sensor.supports(rs.option.global_time_enabled):
+                sensor.set_option(rs.option.global_time_enabled, 1.0)
         self.color = profile.get_stream(rs.stream.color)
         self.depth = profile.get_stream(rs.stream.depth)
         self.depth_scale = self.device.first_depth_sensor().get_depth_scale()

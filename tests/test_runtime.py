@@ -244,3 +244,15 @@ def test_fly_with_a_missing_camera_file_exits_3(tmp_path: Path) -> None:
         capture_output=True, text=True, timeout=60)
     assert proc.returncode == 3
     assert "nope.db3: no such file or folder" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_an_unwritable_record_folder_does_not_keep_the_guard_on_the_ground(tmp_path: Path) -> None:
+    blocker = tmp_path / "records"
+    blocker.write_text("a file where the record folder should be")
+    proc = subprocess.run(
+        [sys.executable, "-m", "app.cli", "fly", "--camera", "synthetic", "--connection",
+         f"udpin://0.0.0.0:{free_udp_port()}", "--record", str(blocker),
+         "--config", str(Path(__file__).parent / "_short_timeout.yaml")],
+        capture_output=True, text=True, timeout=60)
+    assert "flight record disabled" in proc.stderr and str(blocker) in proc.stderr
+    assert proc.returncode == 4  # it went on to the autopilot (none here), not stopped by the disk
