@@ -4,8 +4,9 @@ Each run gets a folder ``<record.dir>/<UTC start>_<pid>/`` holding
 
 - ``meta.json``: start time (UTC and monotonic, so every ``t`` below maps to wall time),
   version, configuration, camera calibration;
-- ``events.jsonl``, ``telemetry.jsonl``, ``decisions.jsonl``, ``latency.jsonl``: one JSON object
-  per line, each with ``t`` = seconds since the run started on the monotonic clock;
+- ``events.jsonl``, ``telemetry.jsonl``, ``decisions.jsonl``, ``tracks.jsonl``,
+  ``latency.jsonl``: one JSON object per line, each with ``t`` = seconds since the run
+  started on the monotonic clock;
 - a *recording folder* (``color/000001.png``, ``depth/000001.png``, ``frames.csv``,
   ``intrinsics.json``) of the frames perception processed, in order, which
   ``midair replay`` reads back; and ``tracks.csv``, the confirmed tracks in the same MOT form
@@ -42,12 +43,13 @@ from app import __version__
 from app.camera import CameraModel
 from app.config import Config, RecordConfig, to_yaml
 from app.perception import Frame
+from app.replay import MOT_HEADER, mot_row
 
 log = logging.getLogger(__name__)
 
 MB = 1024 * 1024
 WRITER_NICE = 10  # the writer thread's niceness (Linux: per thread), relative to the rest
-_STREAMS = ("events", "telemetry", "decisions", "latency")
+_STREAMS = ("events", "telemetry", "decisions", "latency", "tracks")
 
 
 def folder_size(path: Path) -> int:
@@ -93,7 +95,6 @@ class FlightRecord:
         self._saving = cfg.frames != "none"
         self._written = 0  # bytes of this run (frames; text is small and counted at flush)
         self._others = 0  # bytes of the other runs still on disk
-        self._track_rows: list[list[object]] = []
         self.error: str | None = None
 
     # ------------------------------------------------------------------ life cycle
@@ -131,10 +132,6 @@ class FlightRecord:
         self._queue.put(None)
         self._thread.join(timeout=30.0)
         self._thread = None
-        from app.replay import write_tracks_csv
-
-        rows = [r for r in self._track_rows if int(r[0]) <= self._last_saved]  # type: ignore[call-overload]
-        write_tracks_csv(self.folder / "tracks.csv", rows)  # type: ignore[arg-type]
         out = dict(summary or {})
         out["record"] = {"frames_saved": self.frames_saved, "frames_skipped": self.frames_skipped,
                          "frames_refused": self.frames_refused,
@@ -179,12 +176,16 @@ class FlightRecord:
         self._queue.put(("frame", (number, self.t(frame.t_s), frame)))
         return number
 
-    def tracks(self, record_frame: int | None, boxes: list[tuple[int, float, float, float, float]]) -> None:
-        """Confirmed, matched tracks of a saved frame: (id, x, y, w, h) centred boxes, px."""
-        if record_frame is None:
-            return
-        for tid, x, y, w, h in boxes:
-            self._track_rows.append([record_frame, tid, x, y, w, h])
+    def tracks(self, frame: int, t_capture: float, record_frame: int | None,
+               boxes: list[tuple[int, float, float, float, float]]) -> None:
+        """Confirmed, matched tracks of a processed frame: (id, x, y, w, h) with (x, y) the
+        top-left corner, px. Always to ``tracks.jsonl``; for a saved frame also to
+        ``tracks.csv`` under its number in the record."""
+        self._line("tracks", {"t": self.t(), "frame": frame, "t_capture": self.t(t_capture),
+                              "tracks": [[tid, round(x, 1), round(y, 1), round(w, 1), round(h, 1)]
+                                         for tid, x, y, w, h in boxes]})
+        if record_frame is not None and self._thread is not None:
+            self._queue.put(("mot", (record_frame, boxes)))
 
     def _line(self, stream: str, obj: dict[str, object]) -> None:
         if self._thread is not None:
@@ -198,10 +199,13 @@ class FlightRecord:
         except (AttributeError, OSError) as exc:
             log.debug("record writer priority unchanged: %s", exc)
         files: dict[str, IO[str]] = {s: (self.folder / f"{s}.jsonl").open("a") for s in _STREAMS}
-        frames_csv = None
+        frames_csv = mot_csv = None
         if self.cfg.frames != "none":
             frames_csv = (self.folder / "frames.csv").open("a", newline="")
             csv.writer(frames_csv).writerow(["frame", "t_s"])
+            mot_csv = (self.folder / "tracks.csv").open("a", newline="")
+            csv.writer(mot_csv).writerow(MOT_HEADER)
+        extra = [f for f in (frames_csv, mot_csv) if f is not None]
         last_flush = time.monotonic()
         try:
             while True:
@@ -215,10 +219,16 @@ class FlightRecord:
                 kind, payload = item
                 if kind == "frame":
                     self._save_frame(payload, frames_csv)
+                elif kind == "mot" and mot_csv is not None:
+                    number, boxes = payload
+                    if number <= self._last_saved:  # its frame is on disk (in queue order)
+                        rows = csv.writer(mot_csv)
+                        for tid, x, y, w, h in boxes:
+                            rows.writerow(mot_row(number, tid, x, y, w, h))
                 elif kind in files:
                     files[kind].write(json.dumps(payload, default=_jsonable) + "\n")
                 if time.monotonic() - last_flush >= self.cfg.flush_s:
-                    self._flush([*files.values(), *([frames_csv] if frames_csv else [])])
+                    self._flush([*files.values(), *extra])
                     last_flush = time.monotonic()
         except Exception as exc:  # a full or failing disk must not take the flight down
             self.error = f"{type(exc).__name__}: {exc}"
@@ -227,8 +237,8 @@ class FlightRecord:
             while self._queue.get() is not None:  # keep the queue from growing; exit on close
                 pass
         finally:
-            self._flush([*files.values(), *([frames_csv] if frames_csv else [])])
-            for fh in [*files.values(), *([frames_csv] if frames_csv else [])]:
+            self._flush([*files.values(), *extra])
+            for fh in [*files.values(), *extra]:
                 fh.close()
 
     def _save_frame(self, payload: tuple[int, float, Frame], frames_csv: IO[str] | None) -> None:

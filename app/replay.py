@@ -143,13 +143,18 @@ def _open_writer(path: Path, fps: float, width: int, height: int) -> cv2.VideoWr
     return writer
 
 
+def mot_row(frame: int, tid: int, x: float, y: float, w: float, h: float) -> list[object]:
+    """One MOT-challenge line: ``frame,id,x,y,w,h,conf,-1,-1,-1`` (box as given, px)."""
+    return [frame, tid, f"{x:.1f}", f"{y:.1f}", f"{w:.1f}", f"{h:.1f}", 1, -1, -1, -1]
+
+
 def write_tracks_csv(path: Path, rows: list[tuple[int, int, float, float, float, float]]) -> None:
     tmp = path.with_suffix(".csv.tmp")
     with tmp.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(MOT_HEADER)
         for frame, tid, x, y, bw, bh in rows:
-            w.writerow([frame, tid, f"{x:.1f}", f"{y:.1f}", f"{bw:.1f}", f"{bh:.1f}", 1, -1, -1, -1])
+            w.writerow(mot_row(frame, tid, x, y, bw, bh))
     tmp.replace(path)
 
 

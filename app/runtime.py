@@ -270,7 +270,7 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
             decisions.put(d)
             wake.set()
             if record is not None:
-                record.tracks(record_number.pop(worked.frame, None), worked.boxes)
+                record.tracks(worked.frame, d.t_s, record_number.pop(worked.frame, None), worked.boxes)
                 for old in [k for k in record_number if k < worked.frame]:
                     del record_number[old]
                 c = d.command

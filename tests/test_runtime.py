@@ -150,6 +150,10 @@ async def test_camera_stall_mid_evasion_holds_then_recovers(tmp_path: Path) -> N
     assert any(m == "hold" and t_last < t < t_resumed + 0.2 for t, m, _ in sim.mode_log)
     # recovery: the pipeline restarted, frames flowed again and were processed
     assert stats.frames_in > 150 and stats.frames_processed > 150
+    # frames were not saved, the tracks still were (every processed frame, with its capture time)
+    tracks = jsonl(record.folder / "tracks.jsonl")
+    assert len(tracks) > 150 and any(t["tracks"] for t in tracks)
+    assert not (record.folder / "tracks.csv").exists()
     assert sim.mode == "hold"
 
 
