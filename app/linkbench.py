@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -32,6 +33,16 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
+    """Connect and wait until the simulated vehicle reports armed, in air, with an altitude."""
+    await link.connect(timeout_s=timeout_s)
+    t0 = time.monotonic()
+    while not (link.snapshot().armed and link.snapshot().in_air and link.snapshot().altitude_m):
+        if time.monotonic() - t0 > timeout_s:
+            raise UsageError("the simulated vehicle did not report armed and flying")
+        await asyncio.sleep(0.05)
+
+
 async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) -> dict[str, object]:
     try:
         from hardware.px4 import Px4Link
@@ -42,12 +53,7 @@ async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) 
     sim = SimPx4(port, rate_hz=250.0).start()  # polls at 4 ms: arrival times within 4 ms
     link = Px4Link(f"udpin://0.0.0.0:{port}")
     try:
-        await link.connect(timeout_s=10.0)
-        t0 = time.monotonic()
-        while not (link.snapshot().armed and link.snapshot().in_air):
-            if time.monotonic() - t0 > 10:
-                raise UsageError("the simulated vehicle did not report armed and in air")
-            await asyncio.sleep(0.05)
+        await _connect_flying(link)
         eng = Engagement(cfg.flight, cfg.decision.max_speed_mps)
         latest: list[Decision | None] = [None]
         stop = asyncio.Event()
@@ -126,15 +132,10 @@ def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict
         port = _free_port()
         # the vehicle in its own process, as PX4 is: it does not share our interpreter's lock
         sim = subprocess.Popen([sys.executable, "-m", "hardware.sim_px4", "--port", str(port)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         link = Px4Link(f"udpin://0.0.0.0:{port}")
         try:
-            await link.connect(timeout_s=10.0)
-            t0 = time.monotonic()
-            while not (link.snapshot().armed and link.snapshot().altitude_m):
-                if time.monotonic() - t0 > 10:
-                    raise UsageError("the simulated vehicle did not report armed and flying")
-                await asyncio.sleep(0.05)
+            await _connect_flying(link)
             stats = await fly(cfg, source, link, install_signals=False, record=record)
         finally:
             await link.close()
