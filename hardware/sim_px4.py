@@ -63,6 +63,7 @@ class SimState:
     yaw_rad: float = 0.0
     mission_seq: int = 0
     mission_count: int = 5
+    cruise_mps: float = 2.0  # forward speed while in Mission, m/s
 
 
 class SimPx4:
@@ -124,6 +125,12 @@ class SimPx4:
     def mode(self) -> str:
         with self._lock:
             return self.state.mode
+
+    def pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+        """The true state now: position NED (m, home at 0), velocity NED (m/s), yaw (rad)."""
+        with self._lock:
+            st = self.state
+            return tuple(st.pos_ned), tuple(st.vel_ned), st.yaw_rad  # type: ignore[return-value]
 
     def velocity_body(self) -> tuple[float, float, float]:
         """The vehicle's velocity, forward/right/down m/s."""
@@ -251,7 +258,7 @@ class SimPx4:
                 return (0.0, 0.0, 0.0)
             return self._setpoint_body
         if st.mode == "mission":
-            return (2.0, 0.0, 0.0)
+            return (st.cruise_mps, 0.0, 0.0)  # a leg flown straight ahead (MPC_XY_CRUISE)
         if st.mode == "takeoff":
             return (0.0, 0.0, -1.5)
         if st.mode == "land":

@@ -1,0 +1,188 @@
+"""A 3-D world seen by a forward D435i on a multirotor: colour and depth for a camera pose.
+
+Pure code (numpy + OpenCV on arrays). World frame: local NED in metres, home at 0, the ground
+the plane down = 0. The camera sits at the vehicle's position looking along its heading,
+level (PX4 holds a multirotor within a few degrees of level at these speeds; attitude is left
+out, which makes the image motion of the background a little easier than in flight).
+
+What is drawn, far to near, and why:
+
+- **sky**: a brightness gradient with clouds on a cylinder around the vehicle (no parallax,
+  turns with the heading), no depth (the D435i sees nothing there);
+- **ground**: a textured plane drawn through the homography a plane induces, with its true
+  depth per pixel (0 beyond ``max_depth_m``, as the D435i returns no data);
+- **clutter**: trees (vertical slabs) at fixed places, which move against the ground and
+  the sky as the vehicle moves: the parallax a single homography cannot explain;
+- **objects**: spheres (ball, bird, drone sized) with their depth;
+- sensor noise.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from app.camera import CameraModel, Intrinsics
+
+Vec3 = tuple[float, float, float]
+
+# body (forward, right, down) -> camera (right, down, forward)
+_BODY_TO_CAM = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class Tree:
+    north_m: float
+    east_m: float
+    height_m: float = 8.0
+    width_m: float = 3.0
+    grey: int = 60
+
+
+@dataclass(frozen=True)
+class Sphere:
+    object_id: int
+    position_m: Vec3  # NED
+    diameter_m: float
+    grey: int  # 0..255
+
+
+@dataclass(frozen=True)
+class WorldStyle:
+    """The look of one world; everything random comes from ``seed``."""
+
+    seed: int = 0
+    ground_grey: float = 100.0
+    ground_contrast: float = 30.0
+    sky_top: float = 215.0
+    sky_bottom: float = 175.0
+    cloud_contrast: float = 25.0
+    trees: int = 24
+    noise_std: float = 1.5
+
+
+@dataclass
+class World:
+    """Pre-built textures for one style; :meth:`render` draws one frame."""
+
+    style: WorldStyle = field(default_factory=WorldStyle)
+    intrinsics: Intrinsics = field(default_factory=lambda: Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5))
+    max_depth_m: float = 10.0  # D435i: no useful depth beyond this
+
+    def __post_init__(self) -> None:
+        rng = np.random.default_rng(self.style.seed)
+        s, intr = self.style, self.intrinsics
+        # ground: 0.1 m per texel, 102.4 m square, tiled
+        self.ground_res_m = 0.1
+        g = _periodic_blur(rng.normal(0, 1, (1024, 1024)), 2.0)
+        g += 0.5 * cv2.resize(_periodic_blur(rng.normal(0, 1, (64, 64)), 1.5), (1024, 1024))
+        self.ground = np.clip(s.ground_grey + s.ground_contrast * g / (np.abs(g).max() + 1e-9), 0, 255
+                              ).astype(np.uint8)
+        # sky: a cylinder of 2*pi*fx columns, rows of the upper half of the image
+        width = int(round(2 * math.pi * intr.fx))
+        rows = int(math.ceil(intr.ppy)) + 2
+        clouds = _periodic_blur(rng.normal(0, 1, (rows // 8 + 2, width // 8)), 3.0, rows_too=False)
+        clouds = cv2.resize(clouds, (width, rows), interpolation=cv2.INTER_CUBIC)
+        grad = np.linspace(s.sky_top, s.sky_bottom, rows)[:, None]
+        self.sky = np.clip(grad + s.cloud_contrast * clouds / (np.abs(clouds).max() + 1e-9), 0, 255
+                           ).astype(np.uint8)
+        self.trees = [Tree(float(rng.uniform(-60, 160)), float(side * rng.uniform(12, 60)),
+                           float(rng.uniform(5, 12)), float(rng.uniform(2, 5)), int(rng.integers(40, 80)))
+                      for side in rng.choice([-1, 1], s.trees)]
+        self.noise = [rng.normal(0, s.noise_std, (intr.height, intr.width)).astype(np.float32)
+                      for _ in range(7)]
+        self._k = 0
+
+    def camera(self) -> CameraModel:
+        """Colour and depth share the lens here (depth already in the colour frame)."""
+        return CameraModel(self.intrinsics, self.intrinsics)
+
+    def render(self, position_m: Vec3, yaw_rad: float, spheres: list[Sphere]
+               ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[float, float, float, float]]]:
+        """Colour (BGR uint8), depth (uint16 mm, 0 = no data) and, per visible sphere, its
+        image circle and distance ``(u, v, radius_px, z_m)``."""
+        intr = self.intrinsics
+        h, w = intr.height, intr.width
+        altitude = max(0.05, -position_m[2])
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        world_to_body = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        rot = _BODY_TO_CAM @ world_to_body  # world -> camera
+        pos = np.asarray(position_m, float)
+        k = np.array([[intr.fx, 0, intr.ppx], [0, intr.fy, intr.ppy], [0, 0, 1.0]])
+
+        # sky: columns by heading
+        horizon = int(math.floor(intr.ppy)) + 1  # rows above see sky (level camera)
+        shift = int(round(yaw_rad * intr.fx)) % self.sky.shape[1]
+        cols = (np.arange(w) - int(intr.ppx) + shift + self.sky.shape[1] // 2) % self.sky.shape[1]
+        grey = np.empty((h, w), np.uint8)
+        grey[:horizon] = self.sky[:horizon][:, cols]
+
+        # ground: texture (u = east, v = north, 0.1 m texels, tiled) -> image
+        res = self.ground_res_m
+        t = -rot @ (pos - np.array([37.3, 53.1, 0.0]))  # home away from a tile's corner
+        plane = k @ np.column_stack([rot[:, 1] * res, rot[:, 0] * res, t])
+        ground = cv2.warpPerspective(self.ground, plane, (w, h), flags=cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_WRAP)
+        grey[horizon:] = ground[horizon:]
+        depth = np.zeros((h, w), np.float32)
+        v = np.arange(horizon, h, dtype=np.float32)
+        z_ground = altitude * intr.fy / np.maximum(v - intr.ppy, 1e-3)
+        depth[horizon:] = z_ground[:, None]
+
+        # trees, far to near: vertical slabs facing the camera
+        def to_cam(p: np.ndarray) -> np.ndarray:
+            return rot @ (p - pos)
+
+        slabs = []
+        for tree in self.trees:
+            base = to_cam(np.array([tree.north_m, tree.east_m, 0.0]))
+            if base[2] < 1.0:
+                continue
+            slabs.append((base[2], tree, base))
+        for z, tree, base in sorted(slabs, key=lambda item: -item[0]):
+            top = base + rot @ np.array([0.0, 0.0, -tree.height_m])
+            u0 = intr.fx * (base[0] - tree.width_m / 2) / z + intr.ppx
+            u1 = intr.fx * (base[0] + tree.width_m / 2) / z + intr.ppx
+            v0 = intr.fy * top[1] / z + intr.ppy
+            v1 = intr.fy * base[1] / z + intr.ppy
+            x0, x1 = max(0, int(u0)), min(w, int(math.ceil(u1)))
+            y0, y1 = max(0, int(v0)), min(h, int(math.ceil(v1)))
+            if x1 <= x0 or y1 <= y0:
+                continue
+            grey[y0:y1, x0:x1] = tree.grey
+            depth[y0:y1, x0:x1] = z
+
+        # objects
+        seen: dict[int, tuple[float, float, float, float]] = {}
+        for sp in sorted(spheres, key=lambda o: -float(to_cam(np.asarray(o.position_m))[2])):
+            p = to_cam(np.asarray(sp.position_m, float))
+            if p[2] < 0.2:
+                continue
+            u = intr.fx * p[0] / p[2] + intr.ppx
+            vv = intr.fy * p[1] / p[2] + intr.ppy
+            r = intr.fx * sp.diameter_m / 2 / p[2]
+            if not (-r < u < w + r and -r < vv < h + r):
+                continue
+            mask = np.zeros((h, w), np.uint8)
+            cv2.circle(mask, (int(round(u)), int(round(vv))), max(1, int(round(r))), 255, -1, cv2.LINE_AA)
+            alpha = mask.astype(np.float32) / 255.0
+            grey = (grey * (1 - alpha) + sp.grey * alpha).astype(np.uint8)
+            depth[mask > 127] = float(p[2])
+            seen[sp.object_id] = (float(u), float(vv), float(r), float(p[2]))
+
+        noisy = grey.astype(np.float32) + self.noise[self._k % len(self.noise)]
+        self._k += 1
+        colour = cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+        depth[(depth > self.max_depth_m) | (depth < 0.2)] = 0.0
+        return colour, (depth * 1000.0).astype(np.uint16), seen
+
+
+def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np.ndarray:
+    """Gaussian-blurred noise that tiles without a seam (blurred as a 3x3 tiling, centre kept)."""
+    h, w = noise.shape
+    tiled = np.tile(noise, (3 if rows_too else 1, 3))
+    blurred = cv2.GaussianBlur(tiled, (0, 0), sigma)
+    return blurred[h:2 * h, w:2 * w] if rows_too else blurred[:, w:2 * w]
