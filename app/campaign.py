@@ -1,0 +1,241 @@
+"""Campaigns of closed-loop encounters: sampling, a process pool, the report and its plots.
+
+Each encounter is a pure function of (configuration, :class:`app.simulate.Encounter`), and
+every encounter carries its own seed, so the sample is reproducible from the campaign seed
+and the runs can go to any pool: a local process pool here (each encounter runs in real
+time, so the pool's size is bounded by the cores that keep perception on time), or a
+distributed engine's map for campaigns that outgrow one machine.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from app.config import Config
+from app.simulate import Encounter, EncounterResult, run_encounter
+
+SPEED_BINS = (2.0, 4.0, 6.0, 8.0, 10.0, 14.0)  # m/s
+ANGLE_BINS = (0.0, 10.0, 20.0, 30.0)  # |approach| deg; the colour lens sees +-27.5 deg
+KINDS = {  # size m, brightness range (sky ~175-215): ball, bird, small drone
+    "ball": (0.25, (20, 60)),
+    "bird": (0.4, (50, 120)),
+    "drone": (0.35, (20, 50)),
+}
+
+
+def sample_encounters(n: int, seed: int) -> list[Encounter]:
+    """``n`` randomised encounters, reproducible from ``seed``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        kind = str(rng.choice(list(KINDS)))
+        size, (g0, g1) = KINDS[kind]
+        out.append(Encounter(
+            seed=int(seed * 100_003 + i), kind=kind,
+            object_speed_mps=round(float(rng.uniform(2.0, 14.0)), 2),
+            approach_deg=round(float(rng.uniform(-25.0, 25.0)), 1),
+            climb_deg=round(float(rng.uniform(-8.0, 8.0)), 1),
+            miss_m=round(float(rng.choice([0.0, rng.uniform(0.0, 0.6)])), 2),
+            miss_dir_deg=round(float(rng.uniform(0.0, 360.0)), 0),
+            size_m=round(size * float(rng.uniform(0.8, 1.25)), 2),
+            grey=int(rng.integers(g0, g1 + 1)),
+            own_speed_mps=float(rng.choice([0.0, 0.0, 1.0, 2.0, 3.0])),
+        ))
+    return out
+
+
+def object_free(minutes: float, seed: int, run_s: float = 30.0) -> list[Encounter]:
+    """Flights with no object at all over varied worlds and speeds (false evasions)."""
+    rng = np.random.default_rng(seed)
+    n = max(1, int(math.ceil(minutes * 60.0 / run_s)))
+    return [Encounter(seed=int(seed * 100_003 + 50_000 + i), with_object=False, t_cpa_s=run_s,
+                      after_s=0.0, own_speed_mps=float(rng.choice([0.0, 1.0, 2.0, 3.0])),
+                      altitude_m=round(float(rng.uniform(3.0, 15.0)), 1)) for i in range(n)]
+
+
+def _one(args: tuple[Config, Encounter]) -> EncounterResult:
+    import cv2
+
+    cv2.setNumThreads(1)
+    return run_encounter(*args)
+
+
+def run_campaign(cfg: Config, encounters: Sequence[Encounter], workers: int,
+                 progress: Callable[[int, int], None] | None = None) -> list[EncounterResult]:
+    """Run every encounter (in real time) on ``workers`` processes; results in input order."""
+    results: list[EncounterResult | None] = [None] * len(encounters)
+    if workers <= 1:
+        for i, enc in enumerate(encounters):
+            results[i] = _one((cfg, enc))
+            if progress:
+                progress(i + 1, len(encounters))
+    else:
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            futures = {pool.submit(_one, (cfg, enc)): i for i, enc in enumerate(encounters)}
+            done = 0
+            from concurrent.futures import as_completed
+
+            for fut in as_completed(futures):
+                results[futures[fut]] = fut.result()
+                done += 1
+                if progress:
+                    progress(done, len(encounters))
+    return [r for r in results if r is not None]
+
+
+def default_workers() -> int:
+    return max(1, (os.cpu_count() or 2) // 2)
+
+
+# ---------------------------------------------------------------------------- the report
+
+
+def _rate(rows: list[EncounterResult]) -> str:
+    if not rows:
+        return "–"
+    ok = sum(r.success for r in rows)
+    return f"{ok / len(rows):.0%} ({ok}/{len(rows)})"
+
+
+def _median(values: Sequence[float | None]) -> str:
+    vals = [v for v in values if v is not None]
+    return f"{float(np.median(vals)):.2f}" if vals else "–"
+
+
+def _bins(rows: list[EncounterResult], key: Callable[[EncounterResult], float],
+          edges: Sequence[float]) -> list[tuple[str, list[EncounterResult]]]:
+    out = []
+    for lo, hi in zip(edges, edges[1:], strict=False):
+        out.append((f"{lo:g}–{hi:g}", [r for r in rows if lo <= key(r) < hi]))
+    return out
+
+
+def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | None:
+    """The object speed above which success falls below ``threshold`` (lowest failing bin's
+    lower edge), among threats; None when every bin holds."""
+    threats = [r for r in rows if r.threat]
+    for label, group in _bins(threats, lambda r: r.encounter.object_speed_mps, SPEED_BINS):
+        if group and sum(r.success for r in group) / len(group) < threshold:
+            return float(label.split("–")[0])
+    return None
+
+
+def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterResult],
+                 cfg: Config, wall_s: float, title: str = "Campaign") -> Path:
+    """``report.md``, ``encounters.csv`` and PNG plots in ``out``; returns the report's path."""
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "encounters.csv").open("w", newline="") as fh:
+        all_rows = [r.row() for r in rows + free]
+        if all_rows:
+            w = csv.DictWriter(fh, fieldnames=list(all_rows[0]))
+            w.writeheader()
+            w.writerows(all_rows)
+    threats = [r for r in rows if r.threat]
+    course = [r for r in threats if r.encounter.miss_m < 0.15]
+    lines = [f"# {title}", "",
+             f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
+             f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, wall time {wall_s:.0f} s.", "",
+             "| set | success | detected | detection range median, m | detected before CPA median, s "
+             "| evasion before CPA median, s | min separation median, m |",
+             "|---|---|---|---|---|---|---|"]
+
+    def line(name: str, group: list[EncounterResult]) -> str:
+        det = sum(r.detected for r in group)
+        return (f"| {name} | {_rate(group)} | {det}/{len(group)} | "
+                f"{_median([r.detect_range_m for r in group])} | "
+                f"{_median([r.detect_before_cpa_s for r in group])} | "
+                f"{_median([r.evade_before_cpa_s for r in group])} | "
+                f"{_median([r.min_separation_m for r in group])} |")
+
+    lines.append(line("all threats", threats))
+    lines.append(line("collision course (constant bearing, miss < 0.15 m)", course))
+    lines.append(line("near misses", [r for r in threats if r.encounter.miss_m >= 0.15]))
+    for label, group in _bins(threats, lambda r: r.encounter.object_speed_mps, SPEED_BINS):
+        lines.append(line(f"object {label} m/s", group))
+    for label, group in _bins(threats, lambda r: abs(r.encounter.approach_deg), ANGLE_BINS):
+        lines.append(line(f"approach |{label}|°", group))
+    for kind, (size, _) in KINDS.items():
+        lines.append(line(f"{kind} (~{size} m)", [r for r in threats if r.encounter.kind == kind]))
+    env = envelope(rows)
+    lines += ["", "Envelope (success ≥ 90 %): " + (f"holds below {env:g} m/s" if env is not None
+                                                  else "every speed bin holds"), ""]
+    if free:
+        minutes = sum(r.encounter.t_cpa_s for r in free) / 60.0
+        n_false = sum(r.false_evasions for r in free)
+        per_hour = n_false / (minutes / 60.0) if minutes else math.nan
+        lines += [f"Object-free flight: {minutes:.1f} simulated minutes, {n_false} false evasions "
+                  f"({per_hour:.1f} per hour).", ""]
+    lat = [r.capture_to_setpoint_p99_ms for r in rows if r.capture_to_setpoint_p99_ms]
+    drops = sum(r.frames_dropped for r in rows)
+    lines += [f"Latency (capture → setpoint p99 per encounter): median {_median(lat)} ms; "
+              f"frames dropped in all: {drops}.", ""]
+    plots = _plots(out, threats)
+    lines += [f"![{p.stem}]({p.name})" for p in plots]
+    (out / "report.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.json").write_text(json.dumps({
+        "encounters": len(rows), "threats": len(threats),
+        "success_rate": sum(r.success for r in threats) / len(threats) if threats else None,
+        "envelope_mps": env, "wall_s": wall_s,
+        "false_evasions": sum(r.false_evasions for r in free),
+        "object_free_minutes": sum(r.encounter.t_cpa_s for r in free) / 60.0}, indent=2) + "\n")
+    return out / "report.md"
+
+
+def _plots(out: Path, threats: list[EncounterResult]) -> list[Path]:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:  # the report stands without its pictures
+        return []
+    if not threats:
+        return []
+    paths = []
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, key, edges, xlabel in (
+        (axes[0], lambda r: r.encounter.object_speed_mps, SPEED_BINS, "object speed, m/s"),
+        (axes[1], lambda r: abs(r.encounter.approach_deg), ANGLE_BINS, "approach angle |deg| (0 = head-on)"),
+    ):
+        groups = _bins(threats, key, edges)
+        rates = [sum(r.success for r in g) / len(g) if g else 0.0 for _, g in groups]
+        ax.bar([lab for lab, _ in groups], rates, color="tab:green")
+        for i, (_, g) in enumerate(groups):
+            ax.text(i, 0.02, f"n={len(g)}", ha="center", fontsize=8)
+        ax.axhline(0.9, color="k", ls="--", lw=0.8)
+        ax.set_ylim(0, 1)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("success rate")
+    fig.suptitle("Avoided collisions (threat encounters)")
+    fig.tight_layout()
+    paths.append(out / "success.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    speed = [r.encounter.object_speed_mps for r in threats]
+    margin = [r.evade_before_cpa_s if r.evade_before_cpa_s is not None else -0.1 for r in threats]
+    colours = ["tab:green" if r.success else "tab:red" for r in threats]
+    ax.scatter(speed, margin, c=colours, s=18)
+    ax.set_xlabel("object speed, m/s")
+    ax.set_ylabel("evasion started before closest approach, s")
+    ax.set_title("Time margin (green: avoided, red: not; below 0: never evaded)")
+    fig.tight_layout()
+    paths.append(out / "margin.png")
+    fig.savefig(paths[-1], dpi=100)
+    plt.close(fig)
+    return paths
+
+
+def with_trigger(cfg: Config, trigger: str) -> Config:
+    return replace(cfg, decision=replace(cfg.decision, trigger=trigger))
