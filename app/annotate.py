@@ -47,7 +47,9 @@ def annotate(
         lines.append(_draw_decision(out, result, *decision))
     for i, line in enumerate(lines):
         org = (8, 20 + 18 * i)
-        cv2.putText(out, line, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+        (w, h), base = cv2.getTextSize(line, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+        # a dark band behind the text: readable over bright sky as over dark ground
+        cv2.rectangle(out, (org[0] - 3, org[1] - h - 4), (org[0] + w + 3, org[1] + base + 1), (0, 0, 0), -1)
         cv2.putText(out, line, org, cv2.FONT_HERSHEY_SIMPLEX, 0.5, TEXT_COLOUR, 1, cv2.LINE_AA)
     return out
 

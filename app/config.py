@@ -308,11 +308,16 @@ class DecisionConfig:
         2.0, "below this (or with altitude unknown) never command a downward component, m", ge=0
     )
     trigger: str = param(
-        "distance",
-        "distance: paper's fixed thresholds; ttc: also evade when time-to-collision is short",
+        "ttc",
+        "ttc: also evade when time-to-collision is short, judging the window where the object "
+        "will cross (chosen by simulation campaigns, README); distance: the paper's fixed "
+        "thresholds only",
         choices=("distance", "ttc"),
     )
-    ttc_avoid_s: float = param(1.0, "with trigger ttc: evade when time-to-collision < this, s", gt=0)
+    ttc_avoid_s: float = param(
+        1.5, "with trigger ttc: evade when time-to-collision < this (campaigns: 1.5 s beat 1.0 s), s",
+        gt=0,
+    )
     max_depth_age_s: float = param(
         0.2, "a distance older than this never triggers (stale depth is not 'close'), s", gt=0
     )

@@ -70,6 +70,8 @@ class ObjectState:
     fresh: bool  # measured within max_depth_age_s
     closing_mps: float  # -dZ/dt: positive while approaching, m/s
     ttc_s: float | None  # Z / closing speed, when closing
+    # where it will cross the camera plane (X, Y at Z = 0) on its current course, when closing
+    crossing_m: tuple[float, float] | None = None
 
     @property
     def z_m(self) -> float:
@@ -140,8 +142,9 @@ class _Track3D:
         closing = -float(x[5])
         z = float(x[4])
         ttc = z / closing if closing > 0.05 and z > 0 else None
+        crossing = None if ttc is None else (float(x[0] + x[1] * ttc), float(x[2] + x[3] * ttc))
         return ObjectState(track_id, (float(x[0]), float(x[2]), z), self.measured_s,
-                           t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc)
+                           t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc, crossing)
 
 
 class DecisionMaker:
@@ -221,7 +224,7 @@ class DecisionMaker:
             self._engaged = None
 
         # 2. Threats: hostile (inside the window) and close (or, with ttc, soon).
-        threats = [o for o in fresh if o.lateral_m < c.safe_window_m and self._urgent(o)]
+        threats = [o for o in fresh if self._lateral(o) < c.safe_window_m and self._urgent(o)]
         threats.sort(key=self._urgency)
 
         # 3. A running evasion continues until its object is clear, with its latched direction.
@@ -242,7 +245,7 @@ class DecisionMaker:
             preferred = eng.direction
             others = [t for t in threats if t.track_id != eng.object_id]
         else:
-            preferred = away_from(primary.xyz_m[0], primary.xyz_m[1])
+            preferred = away_from(*self._aim(primary))
             others = threats
         direction = self._choose(preferred, others, threats, can_descend)
         if direction is None:
@@ -265,6 +268,25 @@ class DecisionMaker:
 
     # ------------------------------------------------------------------ helpers
 
+    def _predicting(self, o: ObjectState) -> bool:
+        return self.cfg.trigger == "ttc" and o.crossing_m is not None
+
+    def _lateral(self, o: ObjectState) -> float:
+        """How far off the axis it is: now, or (ttc trigger) where it will cross the camera
+        plane on its course, whichever is nearer. The paper's test (now) misses an object
+        that is off to the side and on its way in until it is close."""
+        if self._predicting(o):
+            assert o.crossing_m is not None
+            return min(o.lateral_m, math.hypot(*o.crossing_m))
+        return o.lateral_m
+
+    def _aim(self, o: ObjectState) -> tuple[float, float]:
+        """The point to get away from: where it will cross (ttc trigger), else where it is."""
+        if self._predicting(o):
+            assert o.crossing_m is not None
+            return o.crossing_m
+        return o.xyz_m[0], o.xyz_m[1]
+
     def _urgent(self, o: ObjectState) -> bool:
         if o.z_m < self.avoid_m:
             return True
@@ -276,16 +298,16 @@ class DecisionMaker:
 
     def _clear(self, o: ObjectState) -> bool:
         m = self.cfg.release_margin_m
-        if o.lateral_m >= self.cfg.safe_window_m + m:
+        if self._lateral(o) >= self.cfg.safe_window_m + m:
             return True
         return o.z_m > self.avoid_m + m and not (self.cfg.trigger == "ttc" and o.ttc_s is not None
                                                  and o.ttc_s < self.cfg.ttc_avoid_s)
 
-    @staticmethod
-    def _choose(preferred: tuple[float, float], preferred_vetoes: list[ObjectState],
+    def _choose(self, preferred: tuple[float, float], preferred_vetoes: list[ObjectState],
                 threats: list[ObjectState], can_descend: bool) -> tuple[float, float] | None:
         """The preferred direction unless it closes on one of ``preferred_vetoes``; else the
-        first other direction that closes on none of ``threats``."""
+        first other direction that closes on none of ``threats`` (each judged where it will
+        be, see :meth:`_aim`)."""
         seen: list[tuple[float, float]] = []
         for i, d in enumerate([preferred, *_DIRECTIONS]):
             if not can_descend and d[1] > 0:
@@ -294,7 +316,7 @@ class DecisionMaker:
                 continue
             seen.append(d)
             vetoes = preferred_vetoes if i == 0 else threats
-            if not any(closes_on(d, t.xyz_m[0], t.xyz_m[1]) for t in vetoes):
+            if not any(closes_on(d, *self._aim(t)) for t in vetoes):
                 return d
         return None
 

@@ -197,6 +197,23 @@ def test_ttc_trigger_evades_earlier_than_the_fixed_distance() -> None:
     assert DecisionMaker(ttc_cfg, CAM).decide([approaching], 0.0, ALT).action == EVADE
 
 
+def test_ttc_trigger_sees_a_crossing_object_before_it_is_in_the_window() -> None:
+    ttc_cfg = DecisionConfig(trigger="ttc", ttc_avoid_s=1.5)
+    # 2.4 m to the right at 5 m, coming in at 5 m/s and sliding left at 2.2 m/s: it crosses
+    # the camera plane 0.2 m right of the axis in 1 s. Now it is outside the 1.5 m window.
+    crossing = ObjectState(1, (2.4, 0.0, 5.0), 0.0, True, 5.0, 1.0, (0.2, 0.0))
+    assert crossing.lateral_m > ttc_cfg.safe_window_m
+    assert DecisionMaker(CFG, CAM).decide([crossing], 0.0, ALT).action == NONE  # the paper's rule
+    cmd = DecisionMaker(ttc_cfg, CAM).decide([crossing], 0.0, ALT)
+    assert cmd.action == EVADE and cmd.right_mps < 0  # away from where it will cross, not
+    # from where it is (it is on the right now and will still be right of the axis)
+    passing = ObjectState(1, (2.4, 0.0, 5.0), 0.0, True, 5.0, 1.0, (2.3, 0.0))  # stays wide
+    assert DecisionMaker(ttc_cfg, CAM).decide([passing], 0.0, ALT).action == NONE
+    # one that will cross on the left of the axis: escape right, although it is on the right now
+    across = ObjectState(1, (1.6, 0.3, 5.0), 0.0, True, 5.0, 1.0, (-0.4, 0.3))
+    assert DecisionMaker(ttc_cfg, CAM).decide([across], 0.0, ALT).right_mps > 0
+
+
 @pytest.fixture(scope="module")
 def approach(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # a 0.3 m ball from 8 m, upper-left of the axis, closing at 4 m/s
