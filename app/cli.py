@@ -97,6 +97,9 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--workers", type=int, help="processes for a campaign (default: half the cores; "
                    "encounters run in real time)")
     m.add_argument("--trigger", choices=("distance", "ttc"), help="override decision.trigger")
+    m.add_argument("--connection", metavar="URL", help="single encounter against a PX4 SITL that "
+                   "is already flying (e.g. udpin://0.0.0.0:14540): the camera renders from its "
+                   "telemetry pose; default: the stand-in vehicle, started here")
     m.add_argument("--speed", type=float, default=6.0, help="single encounter: object speed, m/s")
     m.add_argument("--angle", type=float, default=10.0, help="single encounter: approach angle, "
                    "deg from head-on (+: from the right)")
@@ -337,7 +340,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
-        return _single_encounter(cfg, enc, args.out)
+        return _single_encounter(cfg, enc, args.out, args.connection)
     if args.campaign is not None and args.campaign < 1:
         raise UsageError(f"--campaign {args.campaign}: must be at least 1")
     workers = args.workers or default_workers()
@@ -357,14 +360,14 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
-def _single_encounter(cfg: Config, enc: object, out: Path) -> int:
+def _single_encounter(cfg: Config, enc: object, out: Path, connection: str | None = None) -> int:
     from app.replay import run_replay
     from app.simulate import Encounter, run_encounter
     from app.sources import open_source
 
     assert isinstance(enc, Encounter)
     out.mkdir(parents=True, exist_ok=True)
-    r = run_encounter(cfg, enc, out_dir=out, save_frames=True)
+    r = run_encounter(cfg, enc, out_dir=out, save_frames=True, connection=connection)
     assert r.record is not None
     # the annotated video: the record replayed (same frames, same tracks and decisions)
     run_replay(open_source(r.record), cfg, out, video=True)

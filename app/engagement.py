@@ -60,6 +60,9 @@ class VehicleState:
     mode_t_s: float = -math.inf  # when the mode was last reported (PX4: every heartbeat), s
     velocity_ned_mps: tuple[float, float, float] | None = None  # local NED, m/s
     lat_lon_deg: tuple[float, float] | None = None  # WGS84 position, deg
+    # when the autopilot last acknowledged a switch to Offboard (MAVSDK's offboard.start()
+    # returned without error); PX4 reports the mode itself only once a second, s
+    offboard_ack_t_s: float = -math.inf
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,8 @@ class Engagement:
         self._awaiting_mode_since: float | None = None  # link back while in control
         self._shadow_said: str | None = None
         self._last_request = -math.inf
+        self._requested_at = -math.inf  # when the current take-over began
+        self._engaged_at = -math.inf
         self._had_link = False  # a link that never was cannot be "lost"
 
     @property
@@ -152,18 +157,27 @@ class Engagement:
 
         cmd = d.command if d is not None and self._usable(d, v.t_s) else None
         if self.state == MONITOR:
+            if (v.mode == "offboard" and v.mode_t_s > self._requested_at > -math.inf
+                    and self.cfg.mode == "guard"):
+                # Our request was accepted after we had given up on it: the vehicle sits in
+                # Offboard on our zero stream. Hand it back instead of leaving it there.
+                self._requested_at = -math.inf
+                return self._leave(v, self._return_to, "midair: offboard came late: handing back")
             return self._monitor(v, cmd)
 
-        # requesting or engaged: we hold (or are asking for) control
-        if self.state == ENGAGED and v.mode != "offboard":
+        # requesting or engaged: we hold (or are asking for) control. PX4 reports its mode
+        # once a second, so only a report newer than our switch says the pilot changed it.
+        if self.state == ENGAGED and v.mode != "offboard" and v.mode_t_s > self._engaged_at:
             return self._pilot_took_over(v, f"pilot switched to {v.mode}: midair stops")
         if not v.armed or not v.in_air:
             self.state = MONITOR
             return Output(MONITOR, status="midair: vehicle landed or disarmed, hands off")
         retry = False
         if self.state == REQUESTING:
-            if v.mode == "offboard":
-                self.state = ENGAGED
+            if v.offboard_ack_t_s >= self._requested_at or (v.mode == "offboard"
+                                                            and v.mode_t_s >= self._requested_at):
+                self.state = ENGAGED  # acknowledged, or already reported
+                self._engaged_at = v.t_s
             elif v.t_s - self._since > c.offboard_confirm_s:
                 self.state = MONITOR
                 self._cooldown_until = v.t_s + c.offboard_confirm_s  # back off, then try again
@@ -211,6 +225,7 @@ class Engagement:
         self.state = REQUESTING
         self._since = v.t_s
         self._last_request = v.t_s
+        self._requested_at = v.t_s
         self._calm_since = None
         self._stale_since = None
         self._return_to = "mission" if v.mode == "mission" else "hold"

@@ -178,13 +178,19 @@ def _free_port() -> int:
 
 
 def run_encounter(cfg: Config, enc: Encounter, out_dir: Path | None = None,
-                  save_frames: bool = False) -> EncounterResult:
-    """Fly one encounter in real time; return what happened."""
-    return asyncio.run(_encounter(cfg, enc, out_dir, save_frames))
+                  save_frames: bool = False, connection: str | None = None,
+                  pose_from_telemetry: bool = False) -> EncounterResult:
+    """Fly one encounter in real time; return what happened.
+
+    Against the stand-in PX4 (started here) by default, the camera rendering from its true
+    pose; with ``connection`` (a PX4 SITL already flying), the pose comes from MAVLink
+    telemetry (local position and attitude), as it does with ``pose_from_telemetry``.
+    """
+    return asyncio.run(_encounter(cfg, enc, out_dir, save_frames, connection, pose_from_telemetry))
 
 
-async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None,
-                     save_frames: bool) -> EncounterResult:
+async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_frames: bool,
+                     connection: str | None, pose_from_telemetry: bool) -> EncounterResult:
     import tempfile
 
     from app.record import FlightRecord
@@ -193,12 +199,16 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None,
     from hardware.sim_px4 import SimPx4, SimState
 
     wall0 = time.monotonic()
-    state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
-                     cruise_mps=enc.own_speed_mps)
-    state.pos_ned = [0.0, 0.0, -enc.altitude_m]
-    port = _free_port()
-    sim = SimPx4(port, state=state).start()
-    camera = SimulatedCamera(enc, sim.pose)
+    sim = None
+    if connection is None:
+        state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
+                         cruise_mps=enc.own_speed_mps)
+        state.pos_ned = [0.0, 0.0, -enc.altitude_m]
+        port = _free_port()
+        sim = SimPx4(port, state=state).start()
+        connection = f"udpin://0.0.0.0:{port}"
+    link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
+    camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry else link.pose)
     tmp = None
     if out_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="midair-sim-")
@@ -206,23 +216,27 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None,
     rec_cfg = replace(cfg.record, dir=str(out_dir / "records"),
                       frames="color+depth" if save_frames else "none")
     record = FlightRecord(rec_cfg, cfg, camera.camera).start()
-    link = Px4Link(f"udpin://0.0.0.0:{port}")
     try:
-        await link.connect(timeout_s=10.0)
+        await link.connect(timeout_s=cfg.flight.connect_timeout_s)
         t_wait = time.monotonic()
-        while not (link.snapshot().armed and link.snapshot().altitude_m):
+        while not (link.snapshot().armed and link.snapshot().in_air and link.snapshot().altitude_m
+                   and (not link.with_pose or link.has_pose())):
             if time.monotonic() - t_wait > 10:
-                raise RuntimeError("the simulated vehicle did not report flying")
+                raise RuntimeError(f"the vehicle on {connection} is not flying (armed, in air, "
+                                   "with a local position): take off first")
             await asyncio.sleep(0.05)
         stats = await fly(cfg, camera, link, install_signals=False, record=record)
     finally:
         await link.close()
-        sim.stop()
+        if sim is not None:
+            sim.stop()
     summary = stats.summary()
     record.close(summary)
     result = analyse(enc, camera, record.folder, summary)
     result.wall_s = round(time.monotonic() - wall0, 2)
     result.record = None if tmp else str(record.folder)
+    if tmp is None:
+        write_truth(out_dir / "truth.csv", camera)
     if tmp is not None:
         tmp.cleanup()
     return result
@@ -299,3 +313,21 @@ def _episodes(frames: list[int], gap: int = 15) -> int:
             count += 1
         last = f
     return count
+
+
+def write_truth(path: Path, camera: SimulatedCamera) -> None:
+    """The ground truth of every frame: time since the first frame (s), the vehicle's and the
+    object's NED positions (m), and the object's image circle and distance when in view."""
+    import csv
+
+    t0 = camera.t_start or 0.0
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["frame", "t_s", "vehicle_n", "vehicle_e", "vehicle_d", "object_n", "object_e",
+                    "object_d", "u_px", "v_px", "radius_px", "z_m"])
+        for t in camera.truth:
+            obj = t.object_m or (None, None, None)
+            pix = t.pixel or (None, None, None, None)
+            w.writerow([t.frame, f"{t.t_s - t0:.4f}", *(f"{v:.3f}" for v in t.vehicle_m),
+                        *("" if v is None else f"{v:.3f}" for v in obj),
+                        *("" if v is None else f"{v:.2f}" for v in pix)])

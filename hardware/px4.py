@@ -47,6 +47,9 @@ class _Telemetry:
     mode_t: float = -math.inf  # monotonic time of the newest flight-mode report (each heartbeat)
     velocity_ned: tuple[float, float, float] | None = None  # m/s
     lat_lon: tuple[float, float] | None = None  # deg
+    local_ned: tuple[float, float, float] | None = None  # m from PX4's local origin
+    offboard_ack: float = -math.inf  # monotonic time offboard.start() last succeeded
+    yaw_rad: float | None = None
 
 
 def _route_core_log() -> None:
@@ -77,8 +80,9 @@ class Px4Link:
         timeout is slower).
     """
 
-    def __init__(self, url: str, link_timeout_s: float = 0.5) -> None:
+    def __init__(self, url: str, link_timeout_s: float = 0.5, with_pose: bool = False) -> None:
         self.url = url
+        self.with_pose = with_pose  # also follow local position and attitude (simulation)
         self.link_timeout_s = link_timeout_s
         self._tel = _Telemetry()
         self._tasks: list[asyncio.Task[None]] = []
@@ -121,6 +125,12 @@ class Px4Link:
             asyncio.create_task(self._watch(self._telemetry.subscribe_velocity_ned, self._on_velocity)),
             asyncio.create_task(self._watch(system.is_connected_state, self._on_connected)),
         ]
+        if self.with_pose:
+            self._tasks += [
+                asyncio.create_task(self._watch(self._telemetry.subscribe_position_velocity_ned,
+                                                self._on_local)),
+                asyncio.create_task(self._watch(self._telemetry.subscribe_attitude_euler, self._on_attitude)),
+            ]
         self._tel.connected = True
 
     async def close(self) -> None:
@@ -170,6 +180,26 @@ class Px4Link:
         vel = tuple(float(getattr(v, k, math.nan)) for k in ("north_m_s", "east_m_s", "down_m_s"))
         self._tel.velocity_ned = vel if all(math.isfinite(x) for x in vel) else None  # type: ignore[assignment]
 
+    def _on_local(self, pv: object) -> None:
+        pos = getattr(pv, "position", None)
+        ned = tuple(float(getattr(pos, k, math.nan)) for k in ("north_m", "east_m", "down_m"))
+        self._tel.local_ned = ned if all(math.isfinite(x) for x in ned) else None  # type: ignore[assignment]
+
+    def _on_attitude(self, e: object) -> None:
+        yaw = float(getattr(e, "yaw_deg", math.nan))
+        self._tel.yaw_rad = math.radians(yaw) if math.isfinite(yaw) else None
+
+    def has_pose(self) -> bool:
+        return self._tel.local_ned is not None
+
+    def pose(self) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
+        """The vehicle's pose from telemetry (``with_pose``): local NED position (m), NED
+        velocity (m/s), yaw (rad); the same shape as the stand-in vehicle's true pose."""
+        t = self._tel
+        if t.local_ned is None:
+            raise RuntimeError(f"no local position from {self.url} yet")
+        return t.local_ned, t.velocity_ned or (0.0, 0.0, 0.0), t.yaw_rad or 0.0
+
     def _on_connected(self, v: object) -> None:
         self._tel.connected = bool(v)
 
@@ -178,7 +208,7 @@ class Px4Link:
         t = self._tel
         connected = t.connected and now - t.last_rx <= self.link_timeout_s
         return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m, t.mode_t,
-                            t.velocity_ned, t.lat_lon)
+                            t.velocity_ned, t.lat_lon, t.offboard_ack)
 
     # ------------------------------------------------------------------ commands
 
@@ -198,7 +228,8 @@ class Px4Link:
                 VelocityBodyYawspeed(setpoint[0], setpoint[1], setpoint[2], 0.0)))
             self.setpoint_log.append((time.monotonic(), setpoint))
         if out.start_offboard:
-            await self._guard("offboard.start", self._offboard.start())
+            if await self._guard("offboard.start", self._offboard.start()):
+                self._tel.offboard_ack = time.monotonic()  # PX4 accepted the switch
         if out.leave_to is not None:
             await self._guard("offboard.stop", self._offboard.stop())  # PX4 goes to Hold
             if out.leave_to == "mission":
@@ -221,8 +252,11 @@ class Px4Link:
         log.info("%s", text)
         await self._guard("status text", self._utility.send_status_text(StatusTextType.INFO, text[:50]))
 
-    async def _guard(self, what: str, call: Awaitable[object]) -> None:
+    async def _guard(self, what: str, call: Awaitable[object]) -> bool:
+        """Await one command; True when it succeeded (acknowledged), False after a logged error."""
         try:
             await call
         except Exception as exc:  # MAVSDK raises per-plugin error types
             log.warning("%s failed: %s", what, exc)
+            return False
+        return True

@@ -25,6 +25,7 @@ CAM = CameraModel(Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5),
                   Intrinsics(640, 480, 385.0, 385.0, 319.5, 239.5),
                   np.eye(3), np.array([0.015, 0.0, 0.0]))
 CFG = DecisionConfig()
+PAPER = DecisionConfig(trigger="distance")  # the paper's fixed thresholds only
 ALT = 10.0  # m, above the altitude floor
 
 
@@ -193,7 +194,7 @@ def test_away_from_and_closes_on() -> None:
 def test_ttc_trigger_evades_earlier_than_the_fixed_distance() -> None:
     ttc_cfg = DecisionConfig(trigger="ttc", ttc_avoid_s=1.0)
     approaching = obj(0.3, 0.3, 2.5, closing=4.0)  # ttc 0.6 s, still 2.5 m away
-    assert DecisionMaker(CFG, CAM).decide([approaching], 0.0, ALT).action == NONE
+    assert DecisionMaker(PAPER, CAM).decide([approaching], 0.0, ALT).action == NONE
     assert DecisionMaker(ttc_cfg, CAM).decide([approaching], 0.0, ALT).action == EVADE
 
 
@@ -203,7 +204,7 @@ def test_ttc_trigger_sees_a_crossing_object_before_it_is_in_the_window() -> None
     # the camera plane 0.2 m right of the axis in 1 s. Now it is outside the 1.5 m window.
     crossing = ObjectState(1, (2.4, 0.0, 5.0), 0.0, True, 5.0, 1.0, (0.2, 0.0))
     assert crossing.lateral_m > ttc_cfg.safe_window_m
-    assert DecisionMaker(CFG, CAM).decide([crossing], 0.0, ALT).action == NONE  # the paper's rule
+    assert DecisionMaker(PAPER, CAM).decide([crossing], 0.0, ALT).action == NONE  # the paper's rule
     cmd = DecisionMaker(ttc_cfg, CAM).decide([crossing], 0.0, ALT)
     assert cmd.action == EVADE and cmd.right_mps < 0  # away from where it will cross, not
     # from where it is (it is on the right now and will still be right of the axis)
@@ -221,7 +222,8 @@ def approach(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path: Path) -> None:
-    stats = run_replay(open_source(approach), Config(), tmp_path, video=False, altitude_m=ALT)
+    paper = Config(decision=PAPER)
+    stats = run_replay(open_source(approach), paper, tmp_path, video=False, altitude_m=ALT)
     rows = (tmp_path / "decisions.csv").read_text().splitlines()
     assert rows[0] == "frame,action,forward_mps,right_mps,down_mps,object_id"
     assert len(rows) - 1 == len(stats.decisions)
@@ -231,7 +233,14 @@ def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path
     # the ball is at z = 8 - 4 * (f - 1) / 30 m: the evasion starts inside the avoidance
     # distance but before it is closer than the emergency distance
     z_at_start = 8.0 - 4.0 * (f0 - 1) / 30.0
-    assert CFG.emergency_m < z_at_start <= CFG.avoid_m + 0.15
+    assert PAPER.emergency_m < z_at_start <= PAPER.avoid_m + 0.15
     assert c0.right_mps > 0 and c0.down_mps > 0  # upper-left ball: down-right
     assert not any(c.action == STOP for f, c in stats.decisions if f < f0)
     assert all(c.action == NONE for f, c in stats.decisions if f < f0)
+    # the default (time-to-collision, 1.5 s) starts the same evasion far earlier: at about
+    # 4 m/s x 1.5 s = 6 m, once the 3-D track has its closing speed
+    ttc = run_replay(open_source(approach), Config(), tmp_path / "ttc", video=False, altitude_m=ALT)
+    f1, c1 = next((f, c) for f, c in ttc.decisions if c.action == EVADE)
+    z_ttc = 8.0 - 4.0 * (f1 - 1) / 30.0
+    assert 3.0 < z_ttc <= 4.0 * CFG.ttc_avoid_s + 0.3 and f1 < f0
+    assert c1.right_mps > 0 and c1.down_mps > 0

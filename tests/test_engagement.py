@@ -195,3 +195,35 @@ def test_no_link_yet_is_not_a_lost_link() -> None:
     assert out.status is None and out.setpoint is None
     e.tick(vs(0.1), None)
     assert "link lost" in (e.tick(vs(0.2, connected=False), None).status or "")
+
+
+def test_the_acknowledged_switch_engages_before_the_mode_is_reported() -> None:
+    # PX4 reports its mode in the 1 Hz heartbeat; the COMMAND_ACK of the switch comes at once
+    e = Engagement(FlightConfig(), 3.0)
+    t = 0.0
+    e.tick(vs(t), Decision(EVADE_CMD, t))
+    assert e.state == REQUESTING
+    reported = -0.4  # the newest heartbeat still says Position, from before the switch
+    for k in range(1, 25):  # 1.2 s of ticks, longer than offboard_confirm_s
+        t = k * DT
+        v = VehicleState(t, True, True, True, "position", 10.0, mode_t_s=reported,
+                         offboard_ack_t_s=0.01)
+        out = e.tick(v, Decision(EVADE_CMD, t))
+        assert e.state == ENGAGED and out.setpoint == (0.0, 2.0, -2.0)  # no "pilot took over"
+    # a report newer than the switch that says Position is the pilot: hands off
+    v = VehicleState(t + DT, True, True, True, "position", 10.0, mode_t_s=t + DT, offboard_ack_t_s=0.01)
+    out = e.tick(v, Decision(EVADE_CMD, t + DT))
+    assert e.state == MONITOR and out.setpoint is None and "pilot" in (out.status or "")
+
+
+def test_a_switch_accepted_after_midair_gave_up_is_handed_back() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    e.tick(vs(0.0), Decision(EVADE_CMD, 0.0))
+    t = 0.0
+    while e.state == REQUESTING:  # no ack, no report: refused after offboard_confirm_s
+        t += DT
+        out = e.tick(vs(t), Decision(EVADE_CMD, t))
+    assert e.state == MONITOR and "refused" in (out.status or "")
+    t += DT  # ...but the vehicle did switch, and reports it now
+    out = e.tick(vs(t, "offboard"), Decision(CALM, t))
+    assert out.leave_to == "hold" and out.setpoint == ZERO and "late" in (out.status or "")

@@ -78,6 +78,8 @@ def test_a_ball_on_collision_course_is_dodged_and_the_run_is_written_out(tmp_pat
     assert row["evade_before_cpa_s"] > 0.5
     assert row["success"] and row["min_separation_m"] >= 0.6
     assert (tmp_path / "annotated.mp4").stat().st_size > 10_000
+    truth = (tmp_path / "truth.csv").read_text().splitlines()
+    assert truth[0].startswith("frame,t_s,vehicle_n") and len(truth) > 150
     assert row["frames_dropped"] == 0
 
 
@@ -94,3 +96,11 @@ def test_an_empty_sky_gives_no_evasion() -> None:
     r = run_encounter(TTC, Encounter(seed=9, with_object=False, t_cpa_s=8.0, after_s=0.0,
                                      own_speed_mps=2.0))
     assert r.false_evasions == 0 and r.success and r.frames >= 230
+
+
+@pytest.mark.timeout(120)
+def test_the_camera_can_follow_the_pose_from_mavlink_telemetry_as_with_px4_sitl() -> None:
+    # the path `midair simulate --connection` takes with a PX4 SITL: the pose comes from
+    # LOCAL_POSITION_NED and ATTITUDE over MAVLink instead of the stand-in's own state
+    r = run_encounter(TTC, HEAD_ON, pose_from_telemetry=True)
+    assert r.detected and r.evaded and r.success
