@@ -12,10 +12,14 @@ import json
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from app import __version__
 from app.config import Config, explain, load_config, to_yaml
 from app.errors import UsageError, UserError
+
+if TYPE_CHECKING:
+    from app.simulate import Encounter
 
 log = logging.getLogger("midair")
 
@@ -360,14 +364,18 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     return 0
 
 
-def _single_encounter(cfg: Config, enc: object, out: Path, connection: str | None = None) -> int:
+def _single_encounter(cfg: Config, enc: Encounter, out: Path, connection: str | None = None) -> int:
     from app.replay import run_replay
-    from app.simulate import Encounter, run_encounter
+    from app.simulate import run_encounter
     from app.sources import open_source
+    from hardware.px4 import FlightLinkError
 
-    assert isinstance(enc, Encounter)
     out.mkdir(parents=True, exist_ok=True)
-    r = run_encounter(cfg, enc, out_dir=out, save_frames=True, connection=connection)
+    try:
+        r = run_encounter(cfg, enc, out_dir=out, save_frames=True, connection=connection)
+    except FlightLinkError as exc:
+        print(f"midair: error: {exc}", file=sys.stderr)
+        return 4
     assert r.record is not None
     # the annotated video: the record replayed (same frames, same tracks and decisions)
     run_replay(open_source(r.record), cfg, out, video=True)

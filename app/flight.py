@@ -39,7 +39,8 @@ class Controller(Protocol):
 class LoopStats:
     ticks: int = 0
     setpoints: int = 0
-    decision_to_wire_ms: list[float] = field(default_factory=list)  # decision made -> sent
+    # from the decision's t_s (in the flight process: its frame's capture time) to sent
+    decision_to_wire_ms: list[float] = field(default_factory=list)
     period_ms: list[float] = field(default_factory=list)
 
     def summary(self) -> dict[str, float]:

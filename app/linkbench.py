@@ -12,7 +12,6 @@ up with, per-frame latency capture → perceived → decided → setpoint sent.
 from __future__ import annotations
 
 import asyncio
-import socket
 import subprocess
 import sys
 import time
@@ -25,12 +24,6 @@ from app.decision import EVADE, Command
 from app.engagement import Decision, Engagement
 from app.errors import UsageError
 from app.flight import LoopStats, control_loop
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
@@ -46,10 +39,10 @@ async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
 async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) -> dict[str, object]:
     try:
         from hardware.px4 import Px4Link
-        from hardware.sim_px4 import SimPx4
+        from hardware.sim_px4 import SimPx4, free_udp_port
     except ImportError as exc:
         raise UsageError(f"bench --link needs the dev extra (pymavlink, mavsdk): {exc}") from None
-    port = _free_port()
+    port = free_udp_port()
     sim = SimPx4(port, rate_hz=250.0).start()  # polls at 4 ms: arrival times within 4 ms
     link = Px4Link(f"udpin://0.0.0.0:{port}")
     try:
@@ -121,7 +114,7 @@ def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict
         raise UsageError("bench --fly needs --fps > 0 and --seconds >= 2")
     try:
         from hardware.px4 import Px4Link
-        from hardware.sim_px4 import SimPx4  # noqa: F401 - run below as its own process
+        from hardware.sim_px4 import free_udp_port  # the vehicle itself runs as its own process
     except ImportError as exc:
         raise UsageError(f"bench --fly needs the dev extra (pymavlink, mavsdk): {exc}") from None
 
@@ -129,7 +122,7 @@ def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict
         source = open_source(folder)
         record = FlightRecord(dataclasses.replace(cfg.record, dir=str(folder / "records")), cfg,
                               source.camera).start()
-        port = _free_port()
+        port = free_udp_port()
         # the vehicle in its own process, as PX4 is: it does not share our interpreter's lock
         sim = subprocess.Popen([sys.executable, "-m", "hardware.sim_px4", "--port", str(port)],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -16,10 +16,9 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import socket
 import time
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -163,18 +162,11 @@ class EncounterResult:
     capture_to_setpoint_p99_ms: float | None = None
     wall_s: float = 0.0
     record: str | None = None
-    extras: dict[str, object] = field(default_factory=dict)
 
     def row(self) -> dict[str, object]:
-        out = {k: v for k, v in asdict(self).items() if k not in ("encounter", "extras")}
+        out = {k: v for k, v in asdict(self).items() if k != "encounter"}
         out.update({f"enc_{k}": v for k, v in asdict(self.encounter).items()})
         return out
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def run_encounter(cfg: Config, enc: Encounter, out_dir: Path | None = None,
@@ -195,8 +187,8 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
 
     from app.record import FlightRecord
     from app.runtime import fly
-    from hardware.px4 import Px4Link
-    from hardware.sim_px4 import SimPx4, SimState
+    from hardware.px4 import FlightLinkError, Px4Link
+    from hardware.sim_px4 import SimPx4, SimState, free_udp_port
 
     wall0 = time.monotonic()
     sim = None
@@ -204,7 +196,7 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
         state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
                          cruise_mps=enc.own_speed_mps)
         state.pos_ned = [0.0, 0.0, -enc.altitude_m]
-        port = _free_port()
+        port = free_udp_port()
         sim = SimPx4(port, state=state).start()
         connection = f"udpin://0.0.0.0:{port}"
     link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
@@ -222,8 +214,8 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
         while not (link.snapshot().armed and link.snapshot().in_air and link.snapshot().altitude_m
                    and (not link.with_pose or link.has_pose())):
             if time.monotonic() - t_wait > 10:
-                raise RuntimeError(f"the vehicle on {connection} is not flying (armed, in air, "
-                                   "with a local position): take off first")
+                raise FlightLinkError(f"the vehicle on {connection} is not flying (armed, in air, "
+                                      "with a local position): take off first")
             await asyncio.sleep(0.05)
         stats = await fly(cfg, camera, link, install_signals=False, record=record)
     finally:

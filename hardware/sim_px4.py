@@ -66,6 +66,15 @@ class SimState:
     cruise_mps: float = 2.0  # forward speed while in Mission, m/s
 
 
+def free_udp_port() -> int:
+    """A UDP port on the loopback that nothing uses now (for the stand-in's link)."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
 class SimPx4:
     """Start with :meth:`start`, stop with :meth:`stop`. ``gcs_port`` is where MAVSDK listens
     (``udpin://0.0.0.0:<gcs_port>``)."""

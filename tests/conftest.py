@@ -5,7 +5,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import socket
 import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
@@ -38,9 +37,9 @@ def textured(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
 
 
 def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    from hardware.sim_px4 import free_udp_port as pick
+
+    return pick()
 
 
 async def wait_for(pred: Callable[[], bool], timeout: float = 5.0) -> None:

@@ -104,3 +104,18 @@ def test_the_camera_can_follow_the_pose_from_mavlink_telemetry_as_with_px4_sitl(
     # LOCAL_POSITION_NED and ATTITUDE over MAVLink instead of the stand-in's own state
     r = run_encounter(TTC, HEAD_ON, pose_from_telemetry=True)
     assert r.detected and r.evaded and r.success
+
+
+def test_simulate_against_an_autopilot_that_never_answers_exits_4(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    from tests.conftest import free_udp_port
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "app.cli", "simulate", "--out", str(tmp_path), "--connection",
+         f"udpin://0.0.0.0:{free_udp_port()}", "--config",
+         str(Path(__file__).parent / "_short_timeout.yaml")],
+        capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 4
+    assert "no autopilot answered" in proc.stderr and "Traceback" not in proc.stderr
