@@ -18,6 +18,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from multiprocessing import get_context
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -223,10 +224,7 @@ def _plots(out: Path, threats: list[EncounterResult]) -> list[Path]:
         ax.set_xlabel(xlabel)
         ax.set_ylabel("success rate")
     fig.suptitle("Avoided collisions (threat encounters)")
-    fig.tight_layout()
-    paths.append(out / "success.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "success.png"))
 
     fig, ax = plt.subplots(figsize=(6, 4))
     speed = [r.encounter.object_speed_mps for r in threats]
@@ -236,11 +234,15 @@ def _plots(out: Path, threats: list[EncounterResult]) -> list[Path]:
     ax.set_xlabel("object speed, m/s")
     ax.set_ylabel("evasion started before closest approach, s")
     ax.set_title("Time margin (green: avoided, red: not; below 0: never evaded)")
-    fig.tight_layout()
-    paths.append(out / "margin.png")
-    fig.savefig(paths[-1], dpi=100)
-    plt.close(fig)
+    paths.append(_save(plt, fig, out / "margin.png"))
     return paths
+
+
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def with_trigger(cfg: Config, trigger: str) -> Config:

@@ -209,16 +209,16 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
 def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
     from app.bench import format_bench, run_bench
 
-    if args.fly:
-        from app.linkbench import run_fly_bench
+    if args.fly or args.link:
+        from app.linkbench import run_fly_bench, run_link_bench
+        from hardware.px4 import FlightLinkError
 
-        r = run_fly_bench(cfg, fps=args.fps, seconds=args.seconds)
-        print(json.dumps(r, indent=None if args.json else 2))
-        return 0
-    if args.link:
-        from app.linkbench import run_link_bench
-
-        r = run_link_bench(cfg, seconds=args.seconds)
+        try:
+            r = (run_fly_bench(cfg, fps=args.fps, seconds=args.seconds) if args.fly
+                 else run_link_bench(cfg, seconds=args.seconds))
+        except FlightLinkError as exc:  # the simulated vehicle did not come up
+            print(f"midair: error: {exc}", file=sys.stderr)
+            return 4
         print(json.dumps(r, indent=None if args.json else 2))
         return 0
     if args.frames < 30:

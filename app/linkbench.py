@@ -27,13 +27,8 @@ from app.flight import LoopStats, control_loop
 
 
 async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
-    """Connect and wait until the simulated vehicle reports armed, in air, with an altitude."""
     await link.connect(timeout_s=timeout_s)
-    t0 = time.monotonic()
-    while not (link.snapshot().armed and link.snapshot().in_air and link.snapshot().altitude_m):
-        if time.monotonic() - t0 > timeout_s:
-            raise UsageError("the simulated vehicle did not report armed and flying")
-        await asyncio.sleep(0.05)
+    await link.wait_flying(timeout_s)
 
 
 async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) -> dict[str, object]:

@@ -251,9 +251,10 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                 t_decided = time.monotonic()
                 stats.perception_ms.append((t_decided - t_start) * 1000.0)
                 boxes = [(t.track_id, *t.box) for t in result.tracks if t.matched]
-                objs: list[dict[str, object]] = [{"id": o.track_id, "xyz_m": [round(c, 3) for c in o.xyz_m],
-                         "closing_mps": round(o.closing_mps, 2),
-                         "ttc_s": None if o.ttc_s is None else round(o.ttc_s, 3)} for o in objects]
+                objs: list[dict[str, object]] = [] if record is None else [  # for the record only
+                    {"id": o.track_id, "xyz_m": [round(c, 3) for c in o.xyz_m],
+                     "closing_mps": round(o.closing_mps, 2),
+                     "ttc_s": None if o.ttc_s is None else round(o.ttc_s, 3)} for o in objects]
                 d = Decision(command, result.frame.t_s, result.frame.index, t_perceived, t_decided,
                              t_start)
                 return _Worked(d, boxes, result.frame.index, objs)

@@ -187,7 +187,7 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
 
     from app.record import FlightRecord
     from app.runtime import fly
-    from hardware.px4 import FlightLinkError, Px4Link
+    from hardware.px4 import Px4Link
     from hardware.sim_px4 import SimPx4, SimState, free_udp_port
 
     wall0 = time.monotonic()
@@ -210,13 +210,7 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     record = FlightRecord(rec_cfg, cfg, camera.camera).start()
     try:
         await link.connect(timeout_s=cfg.flight.connect_timeout_s)
-        t_wait = time.monotonic()
-        while not (link.snapshot().armed and link.snapshot().in_air and link.snapshot().altitude_m
-                   and (not link.with_pose or link.has_pose())):
-            if time.monotonic() - t_wait > 10:
-                raise FlightLinkError(f"the vehicle on {connection} is not flying (armed, in air, "
-                                      "with a local position): take off first")
-            await asyncio.sleep(0.05)
+        await link.wait_flying()
         stats = await fly(cfg, camera, link, install_signals=False, record=record)
     finally:
         await link.close()

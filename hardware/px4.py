@@ -133,6 +133,20 @@ class Px4Link:
             ]
         self._tel.connected = True
 
+    async def wait_flying(self, timeout_s: float = 10.0) -> None:
+        """Wait until the vehicle reports armed, in air, with an altitude (and, with
+        ``with_pose``, a local position); :class:`FlightLinkError` after ``timeout_s``."""
+        t0 = time.monotonic()
+        while True:
+            v = self.snapshot()
+            if v.armed and v.in_air and v.altitude_m and (not self.with_pose or self.has_pose()):
+                return
+            if time.monotonic() - t0 > timeout_s:
+                raise FlightLinkError(f"the vehicle on {self.url} is not flying (armed, in air, with an "
+                                      "altitude" + (" and a local position" if self.with_pose else "")
+                                      + "): take off first")
+            await asyncio.sleep(0.05)
+
     async def close(self) -> None:
         """Stop the telemetry tasks and destroy the MAVSDK instance now, on this loop: left
         to the garbage collector, its destructor can run at any moment, from any thread,
