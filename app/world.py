@@ -62,6 +62,17 @@ class WorldStyle:
     cloud_contrast: float = 25.0
     trees: int = 24
     noise_std: float = 1.5
+    # Depth noise of a D400 stereo camera: RMS error = z² × subpixel / (focal px × baseline)
+    # (Intel, "Best-Known-Methods for Tuning Intel RealSense D400 Depth Cameras", formula for
+    # depth RMS error). D435i: baseline 50 mm; depth stream 848 px wide over an 87° field,
+    # focal ≈ 447 px; subpixel 0.08 px is the guide's typical value for a textured target.
+    # σ(z) ≈ 0.0036 z²: 0.09 m at 5 m, 0.36 m at 10 m. 0 = perfect depth. Applied as noise
+    # in disparity, where stereo errs (see render).
+    depth_subpixel: float = 0.08
+
+
+D435I_BASELINE_M = 0.050  # stereo baseline of the D435/D435i (Intel D400 datasheet)
+D435I_DEPTH_FX_PX = 447.0  # depth focal length at 848x480: 424 px / tan(87°/2)
 
 
 @dataclass
@@ -95,6 +106,11 @@ class World:
         self.noise = [rng.normal(0, s.noise_std, (intr.height, intr.width)).astype(np.float32)
                       for _ in range(7)]
         self._k = 0
+        # Depth noise: one smooth unit field (stereo matching correlates neighbouring pixels),
+        # a fresh random window of it each frame.
+        field = cv2.GaussianBlur(rng.normal(0, 1, (intr.height + 64, intr.width + 64)), (0, 0), 2.0)
+        self._depth_field = (field / field.std()).astype(np.float32)
+        self._depth_rng = np.random.default_rng(self.style.seed + 1)
 
     def camera(self) -> CameraModel:
         """Colour and depth share the lens here (depth already in the colour frame)."""
@@ -176,6 +192,17 @@ class World:
         noisy = grey.astype(np.float32) + self.noise[self._k % len(self.noise)]
         self._k += 1
         colour = cv2.cvtColor(np.clip(noisy, 0, 255).astype(np.uint8), cv2.COLOR_GRAY2BGR)
+        if self.style.depth_subpixel > 0:
+            # Stereo errs in disparity (d = f B / z), by about `subpixel` px: to first order
+            # σ_z = z² subpixel / (f B), the formula above; a far surface (d → 0) stays far
+            # or has no depth, it never comes out near.
+            dy, dx = self._depth_rng.integers(0, 64, 2)
+            window = self._depth_field[dy:dy + h, dx:dx + w]
+            fb = D435I_DEPTH_FX_PX * D435I_BASELINE_M
+            valid = depth > 0
+            disparity = np.where(valid, fb / np.where(valid, depth, 1.0), 0.0)
+            disparity += self.style.depth_subpixel * window
+            depth = np.where(valid & (disparity > fb / 1000.0), fb / np.maximum(disparity, 1e-6), 0.0)
         depth[(depth > self.max_depth_m) | (depth < 0.2)] = 0.0
         return colour, (depth * 1000.0).astype(np.uint16), seen
 

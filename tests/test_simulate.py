@@ -22,7 +22,7 @@ from app.simulate import Encounter, run_encounter  # noqa: E402
 
 
 def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -> None:
-    world = World(WorldStyle(seed=3))
+    world = World(WorldStyle(seed=3, depth_subpixel=0.0))  # perfect depth
     intr = world.intrinsics
     _colour, depth, seen = world.render((0.0, 0.0, -4.0), 0.0, [Sphere(1, (5.0, 0.0, -4.0), 0.4, 30)])
     u, v, r, z = seen[1]
@@ -34,6 +34,17 @@ def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -
     expected = 2.0 * intr.fy / (intr.height - 1 - intr.ppy)
     assert depth[-1, 5] == pytest.approx(expected * 1000, abs=2)
     assert (depth[: int(intr.ppy)] == 0).all()  # sky: no depth data
+
+
+def test_depth_noise_grows_with_the_square_of_the_distance_as_a_d435i() -> None:
+    world = World(WorldStyle(seed=3))
+    for z in (4.0, 8.0):
+        _c, depth, seen = world.render((0.0, 0.0, -6.0), 0.0, [Sphere(1, (z, 0.0, -6.0), 3.0, 30)])
+        u, v, r, _z = seen[1]
+        patch = depth[int(v - r / 2):int(v + r / 2), int(u - r / 2):int(u + r / 2)].astype(float) / 1000
+        # Intel's D400 RMS error: z² x 0.08 / (447 px x 0.05 m) = 0.0036 z²
+        assert patch.mean() == pytest.approx(z, abs=0.05)
+        assert patch.std() == pytest.approx(0.08 / (447 * 0.05) * z * z, rel=0.25)
 
 
 def test_turning_moves_the_sky_and_sidestepping_shows_parallax() -> None:
@@ -119,3 +130,4 @@ def test_simulate_against_an_autopilot_that_never_answers_exits_4(tmp_path: Path
         capture_output=True, text=True, timeout=60)
     assert proc.returncode == 4
     assert "no autopilot answered" in proc.stderr and "Traceback" not in proc.stderr
+
