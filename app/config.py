@@ -321,8 +321,20 @@ class DecisionConfig:
     max_depth_age_s: float = param(
         0.2, "a distance older than this never triggers (stale depth is not 'close'), s", gt=0
     )
-    kalman_measurement_std_m: float = param(0.15, "3-D track: depth measurement noise (std), m", gt=0)
+    kalman_measurement_std_m: float = param(0.15, "3-D track: position measurement noise (std), m", gt=0)
+    depth_rms_per_m2: float = param(
+        0.0036,
+        "3-D track: distance noise grows as this x distance² when that exceeds the above "
+        "(D435i: 0.08 subpixel / (447 px x 0.05 m), Intel's D400 tuning guide), 1/m",
+        ge=0,
+    )
     kalman_accel_std_mps2: float = param(6.0, "3-D track: white acceleration noise (std), m/s²", gt=0)
+    kalman_initial_speed_std_mps: float = param(
+        1.5,
+        "3-D track: velocity uncertainty when an object is first measured (std, per axis; "
+        "campaigns with D435i depth noise: 1.5 beat 5 and 10), m/s",
+        gt=0,
+    )
     max_hold_s: float = param(
         1.5, "an evasion or stop whose object is no longer measured ends after this, s", gt=0
     )

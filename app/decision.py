@@ -117,7 +117,8 @@ class _Track3D:
         kf.H = np.zeros((3, 6))
         kf.H[0, 0] = kf.H[1, 2] = kf.H[2, 4] = 1.0
         kf.R = np.eye(3) * cfg.kalman_measurement_std_m**2
-        kf.P = np.diag([1.0, 25.0, 1.0, 25.0, 1.0, 25.0]) * cfg.kalman_measurement_std_m**2 * 4
+        pos, vel = (2 * cfg.kalman_measurement_std_m) ** 2, cfg.kalman_initial_speed_std_mps**2
+        kf.P = np.diag([pos, vel, pos, vel, pos, vel])
         self.kf = kf
         self.t_s = t_s
         self.measured_s = t_s
@@ -134,7 +135,9 @@ class _Track3D:
         self.t_s = t_s
 
     def update(self, xyz: tuple[float, float, float], t_s: float) -> None:
-        self.kf.update(np.array([[xyz[0]], [xyz[1]], [xyz[2]]]))
+        s = self.cfg.kalman_measurement_std_m
+        sz = max(s, self.cfg.depth_rms_per_m2 * xyz[2] ** 2)  # stereo error grows with z²
+        self.kf.update(np.array([[xyz[0]], [xyz[1]], [xyz[2]]]), R=np.diag([s * s, s * s, sz * sz]))
         self.measured_s = t_s
 
     def state(self, track_id: int, t_s: float) -> ObjectState:

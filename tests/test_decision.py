@@ -215,6 +215,38 @@ def test_ttc_trigger_sees_a_crossing_object_before_it_is_in_the_window() -> None
     assert DecisionMaker(ttc_cfg, CAM).decide([across], 0.0, ALT).right_mps > 0
 
 
+def _run_noisy_depth(cfg: DecisionConfig, z0: float, closing: float, seed: int) -> float | None:
+    """Feed one object straight ahead, first measured at ``z0`` m and closing at ``closing``
+    m/s, with D435i-like depth noise (RMS 0.0036 z², Intel's D400 formula) for 3 s at 30 fps;
+    return how long after its first depth an evasion began (None: never)."""
+    cl = Cluster(320.0, 240.0, (310, 230, 20, 20), 400,
+                 (np.array([[[310, 230]], [[329, 230]], [[329, 249]], [[310, 249]]]),))
+    from app.tracking import TrackReport
+    tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, ())
+    rng = np.random.default_rng(seed)
+    dm = DecisionMaker(cfg, CAM)
+    for k in range(90):
+        t = k / 30
+        z = z0 - closing * t
+        if z < 1.0:
+            break
+        measured = z + rng.normal(0.0, 0.0036 * z * z)
+        cmd, _ = dm.step([tr], np.full((480, 640), int(measured * 1000), np.uint16), t, ALT)
+        if cmd.action == EVADE:
+            return t
+    return None
+
+
+def test_noisy_far_depth_neither_invents_a_collision_nor_delays_a_real_one() -> None:
+    # A hovering object 9 m ahead (depth noise 0.29 m): the time-to-collision from noise
+    # alone must never fall under ttc_avoid_s.
+    assert all(_run_noisy_depth(CFG, 9.0, 0.0, seed) is None for seed in range(20))
+    # One closing at 12 m/s, first measured at the end of the depth range (10 m, 0.83 s
+    # away): the 3-D track must settle on its speed within a few frames.
+    starts = [_run_noisy_depth(CFG, 10.0, 12.0, seed) for seed in range(20)]
+    assert all(s is not None and s <= 0.3 for s in starts)
+
+
 @pytest.fixture(scope="module")
 def approach(tmp_path_factory: pytest.TempPathFactory) -> Path:
     # a 0.3 m ball from 8 m, upper-left of the axis, closing at 4 m/s
