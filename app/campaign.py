@@ -55,6 +55,18 @@ def sample_encounters(n: int, seed: int) -> list[Encounter]:
     return out
 
 
+WIDE_MISS_M = (2.0, 4.0)  # wide passes: outside the 1.5 m window plus its 0.3 m release margin
+
+
+def wide_passes(n: int, seed: int) -> list[Encounter]:
+    """``n`` encounters like :func:`sample_encounters` whose object would miss by 2-4 m:
+    nothing to avoid, so every evasion is an unnecessary one (the cost of an eager trigger,
+    which the success rate of threats cannot show)."""
+    rng = np.random.default_rng(seed + 1)
+    return [replace(e, seed=e.seed + 70_000, miss_m=round(float(rng.uniform(*WIDE_MISS_M)), 2))
+            for e in sample_encounters(n, seed + 1)]
+
+
 def object_free(minutes: float, seed: int, run_s: float = 30.0) -> list[Encounter]:
     """Flights with no object at all over varied worlds and speeds (false evasions)."""
     rng = np.random.default_rng(seed)
@@ -132,11 +144,12 @@ def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | Non
 
 
 def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterResult],
-                 cfg: Config, wall_s: float, title: str = "Campaign") -> Path:
+                 cfg: Config, wall_s: float, title: str = "Campaign",
+                 wide: Sequence[EncounterResult] = ()) -> Path:
     """``report.md``, ``encounters.csv`` and PNG plots in ``out``; returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
     with (out / "encounters.csv").open("w", newline="") as fh:
-        all_rows = [r.row() for r in rows + free]
+        all_rows = [r.row() for r in [*rows, *wide, *free]]
         if all_rows:
             w = csv.DictWriter(fh, fieldnames=list(all_rows[0]))
             w.writeheader()
@@ -176,6 +189,11 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     else:
         text = f"holds below {env:g} m/s"
     lines += ["", f"Envelope (success ≥ 90 %): {text}", ""]
+    if wide:
+        lo, hi = WIDE_MISS_M
+        lines += [f"Wide passes (would miss by {lo:g}–{hi:g} m, outside the window: nothing to do): "
+                  f"{sum(r.evaded for r in wide)} of {len(wide)} evaded unnecessarily; min separation "
+                  f"median {_median([r.min_separation_m for r in wide])} m.", ""]
     if free:
         minutes = sum(r.encounter.t_cpa_s for r in free) / 60.0
         n_false = sum(r.false_evasions for r in free)
@@ -193,6 +211,7 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
         "encounters": len(rows), "threats": len(threats),
         "success_rate": sum(r.success for r in threats) / len(threats) if threats else None,
         "envelope_mps": env, "wall_s": wall_s,
+        "wide_passes": len(wide), "unnecessary_evasions": sum(r.evaded for r in wide),
         "false_evasions": sum(r.false_evasions for r in free),
         "object_free_minutes": sum(r.encounter.t_cpa_s for r in free) / 60.0}, indent=2) + "\n")
     return out / "report.md"

@@ -98,6 +98,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--campaign", type=int, metavar="N", help="run N randomised encounters")
     m.add_argument("--object-free", type=float, default=0.0, metavar="MIN",
                    help="also fly MIN simulated minutes with no object (false evasions per hour)")
+    m.add_argument("--wide-passes", type=int, default=0, metavar="N",
+                   help="also fly N encounters whose object misses by 2-4 m (unnecessary evasions)")
     m.add_argument("--workers", type=int, help="processes for a campaign (default: half the cores; "
                    "encounters run in real time)")
     m.add_argument("--trigger", choices=("distance", "ttc"), help="override decision.trigger")
@@ -329,6 +331,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
             object_free,
             run_campaign,
             sample_encounters,
+            wide_passes,
             with_trigger,
             write_report,
         )
@@ -338,7 +341,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     if args.trigger:
         cfg = with_trigger(cfg, args.trigger)
     t0 = time.monotonic()
-    if args.campaign is None and not args.object_free:
+    if args.campaign is None and not args.object_free and not args.wide_passes:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
@@ -347,18 +350,22 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         return _single_encounter(cfg, enc, args.out, args.connection)
     if args.campaign is not None and args.campaign < 1:
         raise UsageError(f"--campaign {args.campaign}: must be at least 1")
+    if args.wide_passes < 0 or args.object_free < 0:
+        raise UsageError("--wide-passes and --object-free must not be negative")
     workers = args.workers or default_workers()
     encounters = sample_encounters(args.campaign or 0, args.seed)
+    wide = wide_passes(args.wide_passes, args.seed)
     free = object_free(args.object_free, args.seed) if args.object_free else []
 
     def progress(done: int, total: int) -> None:
         print(f"\rencounters {done}/{total}", end="", file=sys.stderr, flush=True)
 
-    results = run_campaign(cfg, [*encounters, *free], workers, progress)
+    results = run_campaign(cfg, [*encounters, *wide, *free], workers, progress)
     print(file=sys.stderr)
     wall = time.monotonic() - t0
-    report = write_report(args.out, results[:len(encounters)], results[len(encounters):], cfg, wall,
-                          title=f"Campaign of {len(encounters)} encounters, seed {args.seed}")
+    n, k = len(encounters), len(wide)
+    report = write_report(args.out, results[:n], results[n + k:], cfg, wall,
+                          title=f"Campaign of {n} encounters, seed {args.seed}", wide=results[n:n + k])
     print(report.read_text())
     print(f"wrote {report}, {args.out / 'encounters.csv'} and the plots in {args.out}")
     return 0

@@ -131,3 +131,34 @@ def test_simulate_against_an_autopilot_that_never_answers_exits_4(tmp_path: Path
     assert proc.returncode == 4
     assert "no autopilot answered" in proc.stderr and "Traceback" not in proc.stderr
 
+
+def test_wide_passes_are_reproducible_and_never_threats() -> None:
+    from app.campaign import WIDE_MISS_M, sample_encounters, wide_passes
+
+    wide = wide_passes(20, 5)
+    assert wide == wide_passes(20, 5)
+    assert all(WIDE_MISS_M[0] <= e.miss_m <= WIDE_MISS_M[1] and not e.threat for e in wide)
+    assert not {e.seed for e in wide} & {e.seed for e in sample_encounters(20, 5)}
+
+
+@pytest.mark.timeout(240)
+def test_a_small_campaign_writes_a_report_that_agrees_with_its_encounters(tmp_path: Path) -> None:
+    import csv
+
+    code = main(["simulate", "--campaign", "2", "--wide-passes", "1", "--seed", "3",
+                 "--workers", "2", "--out", str(tmp_path)])
+    assert code == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    with (tmp_path / "encounters.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 3 and summary["encounters"] == 2 and summary["wide_passes"] == 1
+    threats = [r for r in rows[:2] if r["threat"] == "True"]
+    assert summary["threats"] == len(threats)
+    if threats:
+        ok = sum(r["success"] == "True" for r in threats)
+        assert summary["success_rate"] == pytest.approx(ok / len(threats))
+    wide = rows[2]
+    assert wide["threat"] == "False" and 2.0 <= float(wide["enc_miss_m"]) <= 4.0
+    assert summary["unnecessary_evasions"] == int(wide["evaded"] == "True")
+    report = (tmp_path / "report.md").read_text()
+    assert f"{summary['unnecessary_evasions']} of 1 evaded unnecessarily" in report
