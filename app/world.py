@@ -200,9 +200,11 @@ class World:
             window = self._depth_field[dy:dy + h, dx:dx + w]
             fb = D435I_DEPTH_FX_PX * D435I_BASELINE_M
             valid = depth > 0
-            disparity = np.where(valid, fb / np.where(valid, depth, 1.0), 0.0)
+            disparity = np.zeros_like(depth)
+            np.divide(fb, depth, out=disparity, where=valid)
             disparity += self.style.depth_subpixel * window
-            depth = np.where(valid & (disparity > fb / 1000.0), fb / np.maximum(disparity, 1e-6), 0.0)
+            depth = np.zeros_like(depth)
+            np.divide(fb, disparity, out=depth, where=valid & (disparity > fb / 1000.0))
         depth[(depth > self.max_depth_m) | (depth < 0.2)] = 0.0
         return colour, (depth * 1000.0).astype(np.uint16), seen
 
