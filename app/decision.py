@@ -116,7 +116,6 @@ class _Track3D:
         kf.x = np.array([[xyz[0]], [0.0], [xyz[1]], [0.0], [xyz[2]], [0.0]])
         kf.H = np.zeros((3, 6))
         kf.H[0, 0] = kf.H[1, 2] = kf.H[2, 4] = 1.0
-        kf.R = np.eye(3) * cfg.kalman_measurement_std_m**2
         pos, vel = (2 * cfg.kalman_measurement_std_m) ** 2, cfg.kalman_initial_speed_std_mps**2
         kf.P = np.diag([pos, vel, pos, vel, pos, vel])
         self.kf = kf
