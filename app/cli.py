@@ -62,6 +62,19 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--workers", type=int, help="processes (default: all cores)")
     with_config(e)
 
+    f = sub.add_parser("fit-confidence",
+                       help="fit the track confidence's weights on clips with ground truth, "
+                       "with a leave-one-clip-out estimate")
+    f.add_argument("path", type=Path, help="a folder of clips, e.g. ../shared/data")
+    f.add_argument("--train", default="halmstad",
+                   help="comma-separated substrings: clips whose name or group has one are used "
+                   "(default: halmstad; DAVIS labels only one object per sequence)")
+    f.add_argument("--min-confidence", type=float, default=None, metavar="P",
+                   help="threshold written with the weights (default: the config's, or 0.3 if 0)")
+    f.add_argument("--out", type=Path, help="write the perception.confidence section here (YAML)")
+    f.add_argument("--workers", type=int, help="processes (default: all cores)")
+    with_config(f)
+
     b = sub.add_parser("bench", help="time stages 1-3 on 640x480 frames, windows vs full-frame features")
     b.add_argument("--frames", type=int, default=300)
     b.add_argument("--repeats", type=int, default=3, help="interleaved runs of each variant")
@@ -205,6 +218,56 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
     if args.out:
         write_reports(args.out, scores, sums)
         print(f"wrote {args.out / 'evaluation.md'} and {args.out / 'evaluation.csv'}")
+    return 0
+
+
+def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
+    import numpy as np
+
+    from app.confidence_fit import (
+        collect_all,
+        fit_logistic,
+        leave_one_clip_out,
+        score_clip,
+        sum_scores,
+        weights_yaml,
+    )
+    from app.evaluate import TOTALS, find_clips
+
+    keys = [k.strip() for k in args.train.split(",") if k.strip()]
+    clips = [c for c in find_clips(args.path) if any(k in c.name or k in c.group for k in keys)]
+    if len(clips) < 2:
+        raise UsageError(f"--train {args.train}: {len(clips)} clip(s) match, need at least 2")
+    threshold = args.min_confidence
+    if threshold is None:
+        threshold = cfg.perception.confidence.min_confidence or 0.3
+    if not 0 < threshold < 1:
+        raise UsageError(f"--min-confidence {threshold}: must be > 0 and < 1")
+    examples = collect_all(clips, cfg, args.workers)
+    rows = sum(len(e.y) for e in examples)
+    print(f"{len(clips)} clips, {rows} track reports, {sum(int(e.y.sum()) for e in examples)} "
+          "on a labelled object")
+    loo = leave_one_clip_out(examples)
+    groups = [(name, members) for name, members in TOTALS
+              if any(e.clip.group in members for e in examples)]
+    print("\nLeave-one-clip-out (each clip scored with weights fitted on the others):")
+    print("| min_confidence | " + " | ".join(f"{n} recall / precision" for n, _ in groups) + " |")
+    print("|---:|" + "---:|" * len(groups))
+    for thr in sorted({0.0, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, round(threshold, 3)}):
+        cells = []
+        for _, members in groups:
+            s = [score_clip(e, c, thr) for e, c in zip(examples, loo, strict=True)
+                 if e.clip.group in members]
+            r, p, _ = sum_scores(s)
+            cells.append(f"{r:.3f} / {p:.3f}")
+        label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
+        print(f"| {label} | " + " | ".join(cells) + " |")
+    bias, w = fit_logistic(np.vstack([e.x for e in examples]), np.concatenate([e.y for e in examples]))
+    text = weights_yaml(bias, w, threshold)
+    print("\nFitted on all of them:\n" + text, end="")
+    if args.out:
+        args.out.write_text(text)
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -415,6 +478,7 @@ _COMMANDS = {
     "replay": _cmd_replay,
     "demo": _cmd_demo,
     "evaluate": _cmd_evaluate,
+    "fit-confidence": _cmd_fit_confidence,
     "bench": _cmd_bench,
     "config": _cmd_config,
     "fly": _cmd_fly,

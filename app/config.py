@@ -88,7 +88,7 @@ class DetectionConfig:
     )
     median_ksize: int = param(3, "median filter aperture, px", ge=1, le=255, odd=True)
     dilate_ksize: int = param(5, "dilation kernel side, px (1 = none)", ge=1, odd=True)
-    threshold: int = param(22, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
+    threshold: int = param(16, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
     max_mask_frac: float = param(
         0.15,
         "a mask covering more of the frame than this means a bad warp: the frame is skipped (0-1)",
@@ -141,12 +141,12 @@ class TrackingConfig:
         50.0, "a cluster farther than this from a track's prediction is not it (distThresh), px", gt=0
     )
     noise_frames: int = param(
-        5, "a candidate seen in more than this many frames becomes confirmed (noiseThresh)", ge=0
+        3, "a candidate seen in more than this many frames becomes confirmed (noiseThresh)", ge=0
     )
     candidate_max_misses: int = param(
         2, "a candidate missed this many frames in a row is dropped as noise", ge=1
     )
-    lost_s: float = param(0.5, "a confirmed track unmatched this long is deleted, s", gt=0)
+    lost_s: float = param(1.0, "a confirmed track unmatched this long is deleted, s", gt=0)
     measurement_std_px: float = param(3.0, "Kalman measurement noise (std), px", gt=0)
     process_accel_std_px: float = param(
         2.0, "Kalman process noise: white acceleration (std), px/frame²", gt=0
@@ -157,12 +157,44 @@ class TrackingConfig:
 
 
 @dataclass(frozen=True)
+class ConfidenceConfig:
+    """Track confidence — object or moving clutter (beyond the paper; app/confidence.py).
+    Weights: `midair fit-confidence ../shared/data --min-confidence 0.35` (all 32 Halmstad
+    clips, 27 998 track reports, with the detection/tracking defaults above)."""
+
+    min_confidence: float = param(
+        0.35, "a confirmed track is reported as an object in the frames its confidence reaches "
+        "this, coasting or not (0-1; 0 = every matched track, as the paper)", ge=0, lt=1,
+    )
+    ring_px: int = param(10, "width of the band around a cluster whose texture is measured, px", ge=1)
+    history_frames: int = param(
+        30, "ring texture is the median over this many of the track's latest matched frames", ge=1
+    )
+    straightness_frames: int = param(
+        10, "straightness is measured over this many of the latest trail points, frames", ge=3
+    )
+    match_frames: int = param(10, "match fraction over this many of the latest frames", ge=1)
+    bias: float = param(-1.6009, "logistic regression intercept")
+    w_matched: float = param(1.02, "weight of: matched in this frame (0/1)")
+    w_log_hits: float = param(0.8453, "weight of: log(1 + frames matched)")
+    w_ring_gradient: float = param(
+        -0.8615, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+    )
+    w_ring_std: float = param(-0.7905, "weight of: log(1 + median grey std in the ring, grey levels)")
+    w_straightness: float = param(1.0363, "weight of: net displacement / path length (0-1)")
+    w_match_fraction: float = param(3.4003, "weight of: fraction of recent frames matched (0-1)")
+    w_elongation: float = param(-3.0281, "weight of: median log(long / short side) of the cluster box")
+    w_fill: float = param(-0.8038, "weight of: median blob area / box area of the cluster (0-1)")
+
+
+@dataclass(frozen=True)
 class PerceptionConfig:
-    """Perception: stages 1-3 of the paper."""
+    """Perception: stages 1-3 of the paper, and a confidence per track."""
 
     detection: DetectionConfig = field(default_factory=DetectionConfig)
     recognition: RecognitionConfig = field(default_factory=RecognitionConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    confidence: ConfidenceConfig = field(default_factory=ConfidenceConfig)
 
 
 # --------------------------------------------------------------------------- camera
@@ -284,6 +316,10 @@ class DecisionConfig:
         25.0, "percentile of the blob's depth pixels taken as its distance", ge=0, le=100
     )
     min_depth_pixels: int = param(6, "fewer trusted depth pixels on the blob: no distance", ge=1)
+    min_track_confidence: float = param(
+        0.0, "tracks below this perception confidence are not measured in depth (0-1; 0 = "
+        "every confirmed track: depth itself tells a closing object from clutter)", ge=0, lt=1,
+    )
     emergency_m: float = param(0.6, "closer than this: emergency stop (emergencyThresh), m", gt=0)
     safe_window_m: float = param(
         1.5, "lateral radius of the safe window, R_safe (paper §5-C: 1.5 m), m", gt=0

@@ -182,7 +182,8 @@ class DecisionMaker:
                 del self._tracks[tid]
         for t in tracks:
             meas = None
-            if depth is not None and t.matched and t.cluster is not None:
+            if (depth is not None and t.matched and t.cluster is not None
+                    and t.confidence >= c.min_track_confidence):
                 meas = object_depth(t.cluster, depth, self.camera, c.min_range_m, c.max_range_m,
                                     c.depth_percentile, c.min_depth_pixels)
             tr = self._tracks.get(t.track_id)

@@ -24,7 +24,7 @@ import numpy as np
 
 from app.config import Config
 from app.errors import SourceError, UserError
-from app.replay import run_replay
+from app.replay import TrackRow, run_replay
 from app.sources import open_source
 
 log = logging.getLogger(__name__)
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 GATE_PX = 20.0  # smallest gate, px
 GATE_SCALE = 1.0  # gate as a multiple of the GT box's larger side
 
-Row = tuple[int, int, float, float, float, float]  # frame, id, x, y, w, h
+Row = TrackRow
 
 
 @dataclass(frozen=True)
@@ -128,7 +128,7 @@ def score(
             d = np.full((len(g), len(h)), np.nan)
             for a, (_, gx, gy, gw, gh) in enumerate(g):
                 gate = max(gate_px, gate_scale * max(gw, gh))
-                for b, (_, _, hx, hy, hw, hh) in enumerate(h):
+                for b, (_, _, hx, hy, hw, hh, _) in enumerate(h):
                     dist = np.hypot(gx + gw / 2 - hx - hw / 2, gy + gh / 2 - hy - hh / 2)
                     if dist <= gate:
                         d[a, b] = dist

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from app.confidence import TrackConfidence
 from app.config import PerceptionConfig
 from app.detection import MotionDetector
 from app.recognition import Blobs, Cluster, Recognizer
@@ -33,7 +34,7 @@ class PerceptionResult:
     mask: np.ndarray | None
     blobs: Blobs | None
     clusters: list[Cluster]
-    tracks: list[TrackReport]
+    tracks: list[TrackReport]  # every confirmed track, scored (``reported``: counted as an object)
     homography: np.ndarray | None  # H_{t-1,t}
     timings_ms: dict[str, float] = field(default_factory=dict)
 
@@ -62,12 +63,16 @@ class Perception:
         self.detector = MotionDetector(cfg.detection, full_frame=full_frame_features)
         self.recognizer = Recognizer(cfg.recognition)
         self.tracker = Tracker(cfg.tracking)
+        self.confidence = TrackConfidence(cfg.confidence)
         self._pending: Frame | None = None  # frame t, waiting for t+1
+        self._pending_grey: np.ndarray | None = None
 
     def reset(self) -> None:
         self.detector.reset()
         self.tracker.reset()
+        self.confidence.reset()
         self._pending = None
+        self._pending_grey = None
 
     def push(self, frame: Frame) -> PerceptionResult | None:
         t0 = time.perf_counter()
@@ -76,8 +81,10 @@ class Perception:
         det = self.detector.push(grey, exclude)
         t1 = time.perf_counter()
         current, self._pending = self._pending, frame
+        current_grey, self._pending_grey = self._pending_grey, grey
         if det.status == "scene_cut":
             self.tracker.reset()
+            self.confidence.reset()
         if current is None:
             return None
         clusters: list[Cluster] = []
@@ -91,6 +98,8 @@ class Perception:
             tracks = self.tracker.step(
                 clusters if det.mask is not None else None, current.t_s, det.homography
             )
+            if current_grey is not None:
+                tracks = self.confidence(current_grey, tracks)
         t3 = time.perf_counter()
         timings = {
             "detection_ms": (t1 - t0) * 1e3,

@@ -177,13 +177,13 @@ class FlightRecord:
         return number
 
     def tracks(self, frame: int, t_capture: float, record_frame: int | None,
-               boxes: list[tuple[int, float, float, float, float]]) -> None:
-        """Confirmed, matched tracks of a processed frame: (id, x, y, w, h) with (x, y) the
-        top-left corner, px. Always to ``tracks.jsonl``; for a saved frame also to
-        ``tracks.csv`` under its number in the record."""
+               boxes: list[tuple[int, float, float, float, float, float, bool]]) -> None:
+        """Confirmed tracks of a processed frame, matched or reported: (id, x, y, w, h,
+        confidence, reported) with (x, y) the top-left corner, px. All to ``tracks.jsonl``;
+        for a saved frame the reported ones also to ``tracks.csv`` under its number."""
         self._line("tracks", {"t": self.t(), "frame": frame, "t_capture": self.t(t_capture),
-                              "tracks": [[tid, round(x, 1), round(y, 1), round(w, 1), round(h, 1)]
-                                         for tid, x, y, w, h in boxes]})
+                              "tracks": [[tid, round(x, 1), round(y, 1), round(w, 1), round(h, 1),
+                                          round(c, 3), r] for tid, x, y, w, h, c, r in boxes]})
         if record_frame is not None and self._thread is not None:
             self._queue.put(("mot", (record_frame, boxes)))
 
@@ -223,8 +223,9 @@ class FlightRecord:
                     number, boxes = payload
                     if number <= self._last_saved:  # its frame is on disk (in queue order)
                         rows = csv.writer(mot_csv)
-                        for tid, x, y, w, h in boxes:
-                            rows.writerow(mot_row(number, tid, x, y, w, h))
+                        for tid, x, y, w, h, c, reported in boxes:
+                            if reported:
+                                rows.writerow(mot_row(number, tid, x, y, w, h, c))
                 elif kind in files:
                     files[kind].write(json.dumps(payload, default=_jsonable) + "\n")
                 if time.monotonic() - last_flush >= self.cfg.flush_s:

@@ -37,6 +37,7 @@ from app.sources import FrameSource
 
 log = logging.getLogger(__name__)
 
+TrackRow = tuple[int, int, float, float, float, float, float]  # frame, id, x, y, w, h px, confidence
 MOT_HEADER = ("frame", "id", "x", "y", "w", "h", "conf", "wx", "wy", "wz")
 
 
@@ -45,7 +46,7 @@ class ReplayStats:
     frames: int = 0
     statuses: Counter[str] = field(default_factory=Counter)
     timings: dict[str, list[float]] = field(default_factory=dict)
-    track_rows: list[tuple[int, int, float, float, float, float]] = field(default_factory=list)
+    track_rows: list[TrackRow] = field(default_factory=list)
     decisions: list[tuple[int, Command]] = field(default_factory=list)
     wall_s: float = 0.0
 
@@ -55,9 +56,9 @@ class ReplayStats:
         for k, v in r.timings_ms.items():
             self.timings.setdefault(k, []).append(v)
         for t in r.tracks:
-            if t.matched:
+            if t.reported:
                 x, y, w, h = t.box
-                self.track_rows.append((r.frame.index, t.track_id, x, y, w, h))
+                self.track_rows.append((r.frame.index, t.track_id, x, y, w, h, t.confidence))
 
     def summary(self, source: FrameSource) -> dict[str, object]:
         stages = {
@@ -143,18 +144,19 @@ def _open_writer(path: Path, fps: float, width: int, height: int) -> cv2.VideoWr
     return writer
 
 
-def mot_row(frame: int, tid: int, x: float, y: float, w: float, h: float) -> list[object]:
+def mot_row(frame: int, tid: int, x: float, y: float, w: float, h: float,
+            conf: float = 1.0) -> list[object]:
     """One MOT-challenge line: ``frame,id,x,y,w,h,conf,-1,-1,-1`` (box as given, px)."""
-    return [frame, tid, f"{x:.1f}", f"{y:.1f}", f"{w:.1f}", f"{h:.1f}", 1, -1, -1, -1]
+    return [frame, tid, f"{x:.1f}", f"{y:.1f}", f"{w:.1f}", f"{h:.1f}", f"{conf:.3g}", -1, -1, -1]
 
 
-def write_tracks_csv(path: Path, rows: list[tuple[int, int, float, float, float, float]]) -> None:
+def write_tracks_csv(path: Path, rows: list[TrackRow]) -> None:
     tmp = path.with_suffix(".csv.tmp")
     with tmp.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(MOT_HEADER)
-        for frame, tid, x, y, bw, bh in rows:
-            w.writerow(mot_row(frame, tid, x, y, bw, bh))
+        for frame, tid, x, y, bw, bh, conf in rows:
+            w.writerow(mot_row(frame, tid, x, y, bw, bh, conf))
     tmp.replace(path)
 
 

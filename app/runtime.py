@@ -212,7 +212,8 @@ async def capture(source: FrameSource, frames: LatestSlot[Frame], stop: asyncio.
 @dataclass
 class _Worked:
     decision: Decision | None
-    boxes: list[tuple[int, float, float, float, float]]
+    # id, x, y, w, h px, confidence, reported
+    boxes: list[tuple[int, float, float, float, float, float, bool]]
     frame: int  # source frame number the result is for
     objects: list[dict[str, object]]
 
@@ -250,7 +251,8 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                 command, objects = decider.step(result.tracks, result.frame.depth, result.frame.t_s, alt)
                 t_decided = time.monotonic()
                 stats.perception_ms.append((t_decided - t_start) * 1000.0)
-                boxes = [(t.track_id, *t.box) for t in result.tracks if t.matched]
+                boxes = [(t.track_id, *t.box, t.confidence, t.reported) for t in result.tracks
+                         if t.matched or t.reported]
                 objs: list[dict[str, object]] = [] if record is None else [  # for the record only
                     {"id": o.track_id, "xyz_m": [round(c, 3) for c in o.xyz_m],
                      "closing_mps": round(o.closing_mps, 2),

@@ -276,7 +276,8 @@ def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
             continue
         u, v, r, _z = tr.pixel
         gate = max(20.0, 2.0 * r)
-        if any(math.hypot(x + w / 2 - u, y + h / 2 - v) <= gate for _id, x, y, w, h in line["tracks"]):
+        if any(math.hypot(x + w / 2 - u, y + h / 2 - v) <= gate
+               for _id, x, y, w, h, *_confidence_reported in line["tracks"]):
             res.detected = True
             d = distance(tr.frame)
             res.detect_range_m = None if d is None else round(d, 2)

@@ -65,6 +65,9 @@ class TrackReport:
     hits: int
     cluster: Cluster | None
     trail: tuple[tuple[float, float], ...]
+    confidence: float = 1.0  # 0-1, from app.confidence (1 until scored)
+    features: tuple[float, ...] = ()  # what the confidence was computed from (app.confidence)
+    reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
 
 
 class Tracker:
@@ -205,7 +208,7 @@ class Tracker:
             track_id=t.track_id, x=x, y=y, vx=float(t.kf.x[1, 0]), vy=float(t.kf.x[3, 0]),
             box=_box(t), matched=t.cluster is not None,
             last_seen_s=t.last_seen_s, hits=t.hits,
-            cluster=t.cluster, trail=tuple(t.trail),
+            cluster=t.cluster, trail=tuple(t.trail), reported=t.cluster is not None,
         )
 
 

@@ -1,0 +1,148 @@
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from app.confidence import FEATURES, TrackConfidence, ring_texture, straightness
+from app.confidence_fit import fit_logistic
+from app.config import ConfidenceConfig, config_from_mapping
+from app.recognition import Cluster
+from app.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.tracking import TrackReport
+from tests.conftest import textured
+
+
+def _cfg(**kw: float) -> ConfidenceConfig:
+    """A confidence with every weight 0 except those given (the shipped ones are fitted)."""
+    zero = {"bias": 0.0, **{f"w_{n}": 0.0 for n in FEATURES}}
+    return ConfidenceConfig(**{**zero, **kw})  # type: ignore[arg-type]
+
+
+def _square(x: int, y: int, side: int = 8) -> Cluster:
+    contour = np.array([[[x, y]], [[x + side - 1, y]], [[x + side - 1, y + side - 1]], [[x, y + side - 1]]],
+                       np.int32)
+    return Cluster(x + side / 2, y + side / 2, (x, y, side, side), side * side, (contour,))
+
+
+def _report(tid: int, cl: Cluster | None, trail: tuple[tuple[float, float], ...],
+            hits: int = 10) -> TrackReport:
+    x, y = (cl.x, cl.y) if cl is not None else trail[-1]
+    return TrackReport(tid, x, y, 0.0, 0.0, (x - 4, y - 4, 8, 8), cl is not None, 0.0, hits, cl, trail,
+                       reported=cl is not None)
+
+
+def test_ring_texture_sees_sky_as_plain_and_trees_as_textured() -> None:
+    sky = np.full((200, 200), 170, np.uint8)
+    trees = textured(200, 200, seed=4)
+    for img in (sky, trees):
+        img[96:104, 96:104] = 40  # the object itself: excluded from the ring
+    inner = np.full((8, 8), 255, np.uint8)
+    g_sky, s_sky = ring_texture(sky, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
+    g_tree, s_tree = ring_texture(trees, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
+    assert g_sky == 0.0 and s_sky == 0.0  # a dark object on plain sky leaves no texture in its ring
+    assert g_tree > 50 and s_tree > 10
+    # off the frame: no band to measure
+    assert ring_texture(sky, (-40, -40, 8, 8), inner, 10) is None
+
+
+def test_straightness_of_a_line_and_of_a_jitter() -> None:
+    line = tuple((float(i), 2.0 * i) for i in range(12))
+    jitter = tuple((float(i % 2), 0.0) for i in range(12))
+    assert straightness(line, 10) == pytest.approx(1.0)
+    assert straightness(jitter, 10) < 0.15
+    assert straightness(line[:2], 10) == 0.0
+
+
+def test_confidence_prefers_a_steady_object_in_plain_sky() -> None:
+    cfg = _cfg(min_confidence=0.5, w_matched=1.0, w_ring_gradient=-1.0, w_ring_std=-1.0,
+               w_straightness=2.0, w_match_fraction=1.0)
+    sky = np.full((480, 640), 170, np.uint8)
+    trees = textured(seed=2)
+    line = tuple((100.0 + 3 * i, 100.0) for i in range(10))
+    jitter = tuple((300.0 + (i % 2), 300.0) for i in range(10))
+    scorer = TrackConfidence(cfg)
+    bird, branch = scorer(sky, [_report(1, _square(126, 96), line)])[0], scorer(
+        trees, [_report(2, _square(296, 296), jitter)])[0]
+    assert len(bird.features) == len(FEATURES)
+    assert bird.confidence > 0.9 and bird.reported
+    assert branch.confidence < 0.1 and not branch.reported
+    # the same features, the same answer: sigmoid of the weighted sum
+    z = cfg.bias + sum(getattr(cfg, f"w_{n}") * f for n, f in zip(FEATURES, bird.features, strict=True))
+    assert bird.confidence == pytest.approx(1 / (1 + math.exp(-z)))
+
+
+def test_a_confident_track_is_reported_while_coasting_and_forgotten_when_gone() -> None:
+    cfg = _cfg(min_confidence=0.5, bias=-1.0, w_matched=2.0, w_match_fraction=4.0)
+    sky = np.full((480, 640), 170, np.uint8)
+    scorer = TrackConfidence(cfg)
+    trail: tuple[tuple[float, float], ...] = ()
+    for i in range(8):
+        trail = (*trail, (100.0 + 3 * i, 100.0))
+        scorer(sky, [_report(1, _square(96 + 3 * i, 96), trail)])
+    coasting = scorer(sky, [_report(1, None, (*trail, (124.0, 100.0)))])[0]
+    assert not coasting.matched and coasting.reported  # 8 of 9 frames matched: still believed
+    for _ in range(10):
+        coasting = scorer(sky, [_report(1, None, (*trail, (124.0, 100.0)))])[0]
+    assert not coasting.reported  # 10 misses in a row: no longer
+    scorer(sky, [])
+    assert scorer._evidence == {}
+
+
+def test_min_confidence_zero_reports_exactly_the_matched_tracks() -> None:
+    scorer = TrackConfidence(_cfg(min_confidence=0.0, bias=5.0))
+    sky = np.full((480, 640), 170, np.uint8)
+    line = tuple((100.0 + i, 100.0) for i in range(5))
+    out = scorer(sky, [_report(1, _square(100, 96), line), _report(2, None, line)])
+    assert [t.reported for t in out] == [True, False]
+    assert all(t.confidence > 0.99 for t in out)
+
+
+def test_logistic_fit_recovers_known_weights() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(40000, 3)) * [1.0, 2.0, 0.5] + [0.0, 1.0, 3.0]
+    bias, w = 0.7, np.array([1.5, -0.8, 2.0])
+    y = rng.random(40000) < 1 / (1 + np.exp(-(bias + x @ w)))
+    b_fit, w_fit = fit_logistic(x, y)
+    assert b_fit == pytest.approx(bias, abs=0.15)
+    assert w_fit == pytest.approx(w, abs=0.08)
+    with pytest.raises(ValueError, match="both classes"):
+        fit_logistic(x, np.ones(40000, bool))
+
+
+def test_fit_confidence_command_end_to_end(tmp_path: Path) -> None:
+    """Two synthetic clips whose second object is left out of the labels: the command
+    replays both, prints the leave-one-clip-out table and writes a loadable config section."""
+    data = tmp_path / "data"
+    data.mkdir()
+    for k in (1, 2):
+        scene = SyntheticScene(frames=60, seed=k, objects=(
+            SyntheticObject(1, (100.0, 120.0), (3.0, 0.5), 18.0),
+            SyntheticObject(2, (540.0, 60.0), (1.0, 0.3), 24.0),
+        ))
+        rec = write_recording(scene, tmp_path / f"rec{k}")
+        shutil.copy(rec / "color.mp4", data / f"clip{k}.mp4")
+        lines = (rec / "gt.csv").read_text().splitlines()
+        (data / f"clip{k}.gt.csv").write_text(
+            "\n".join([lines[0], *(ln for ln in lines[1:] if ln.split(",")[1] == "1")]) + "\n")
+    out = tmp_path / "confidence.yaml"
+    proc = subprocess.run([sys.executable, "-m", "app.cli", "fit-confidence", str(data), "--train", "clip",
+                           "--min-confidence", "0.4", "--out", str(out), "--workers", "1"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "Leave-one-clip-out" in proc.stdout and "| 0.4 |" in proc.stdout
+    section = yaml.safe_load(out.read_text())
+    cfg = config_from_mapping(section).perception.confidence
+    assert cfg.min_confidence == 0.4
+    assert all(math.isfinite(getattr(cfg, f"w_{n}")) for n in FEATURES)
+    assert dataclasses.asdict(cfg) != dataclasses.asdict(ConfidenceConfig(min_confidence=0.4))
+    bad = subprocess.run([sys.executable, "-m", "app.cli", "fit-confidence", str(data), "--train", "nothing"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--train nothing: 0 clip(s) match" in bad.stderr
