@@ -11,7 +11,8 @@ from app.perception import PerceptionResult
 MASK_COLOUR = (0, 0, 255)  # BGR: red outline of the motion mask
 CLUSTER_COLOUR = (0, 220, 255)  # yellow: recognised clusters
 TRACK_COLOUR = (60, 220, 60)  # green: confirmed tracks
-LOST_COLOUR = (160, 160, 160)  # grey: confirmed but coasting
+LOST_COLOUR = (160, 160, 160)  # grey: reported while coasting
+CLUTTER_COLOUR = (0, 140, 255)  # orange, thin: confirmed, but its confidence says clutter
 TEXT_COLOUR = (255, 255, 255)
 WINDOW_COLOUR = (255, 160, 0)  # blue-ish: the safe window
 ALERT_COLOUR = (0, 0, 255)  # red: the evasion arrow
@@ -33,15 +34,19 @@ def annotate(
         x, y, w, h = c.box
         cv2.rectangle(out, (x, y), (x + w, y + h), CLUSTER_COLOUR, 1)
     for t in result.tracks:
-        colour = TRACK_COLOUR if t.matched else LOST_COLOUR
+        if not (t.reported or t.matched):
+            continue  # a coasting track not believed: nothing to show
+        colour = (TRACK_COLOUR if t.matched else LOST_COLOUR) if t.reported else CLUTTER_COLOUR
         if len(t.trail) > 1:
             pts = np.round(np.array(t.trail)).astype(np.int32).reshape(-1, 1, 2)
             cv2.polylines(out, [pts], False, colour, 1, cv2.LINE_AA)
         x, y, w, h = (int(round(v)) for v in t.box)
-        cv2.rectangle(out, (x, y), (x + w, y + h), colour, 2)
-        cv2.putText(out, f"#{t.track_id}", (x, max(12, y - 4)), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
-                    colour, 1, cv2.LINE_AA)
-    lines = [f"frame {result.frame.index}  {result.status}  tracks {len(result.tracks)}",
+        cv2.rectangle(out, (x, y), (x + w, y + h), colour, 2 if t.reported else 1)
+        cv2.putText(out, f"#{t.track_id} {t.confidence:.2f}", (x, max(12, y - 4)),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+    reported = sum(t.reported for t in result.tracks)
+    lines = [f"frame {result.frame.index}  {result.status}  objects {reported}  "
+             f"tracks {len(result.tracks)}",
              *extra_lines]
     if decision is not None:
         lines.append(_draw_decision(out, result, *decision))

@@ -276,3 +276,21 @@ def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path
     z_ttc = 8.0 - 4.0 * (f1 - 1) / 30.0
     assert 3.0 < z_ttc <= 4.0 * CFG.ttc_avoid_s + 0.3 and f1 < f0
     assert c1.right_mps > 0 and c1.down_mps > 0
+
+
+def test_min_track_confidence_keeps_unbelieved_tracks_out_of_depth() -> None:
+    """Only with ``min_track_confidence`` raised does a low-confidence track go unmeasured."""
+    import dataclasses
+
+    from app.tracking import TrackReport
+    cl = Cluster(320.0, 240.0, (310, 230, 20, 20), 400, (np.array([[[310, 230]], [[329, 230]],
+                                                                   [[329, 249]], [[310, 249]]]),))
+    depth = np.full((480, 640), 3000, np.uint16)  # 3 m everywhere
+    tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, (), confidence=0.1)
+    _, objects = DecisionMaker(CFG, CAM).step([tr], depth, 0.0, ALT)
+    assert [round(o.z_m, 1) for o in objects] == [3.0]  # the default measures every track
+    strict = dataclasses.replace(CFG, min_track_confidence=0.35)
+    _, objects = DecisionMaker(strict, CAM).step([tr], depth, 0.0, ALT)
+    assert objects == []
+    _, objects = DecisionMaker(strict, CAM).step([dataclasses.replace(tr, confidence=0.5)], depth, 0.0, ALT)
+    assert len(objects) == 1
