@@ -36,6 +36,7 @@ import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from statistics import median
 
 import cv2
 import numpy as np
@@ -53,7 +54,8 @@ class _Evidence:
 
     gradient: deque[float]
     std: deque[float]
-    shape: deque[tuple[float, float]]  # elongation, fill
+    elongation: deque[float]
+    fill: deque[float]
     matched: deque[bool]
     seen: bool = field(default=False)  # updated in the current frame
 
@@ -75,27 +77,37 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.nda
     gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3)
     mag = cv2.magnitude(gx, gy)[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0]
-    band = np.ones((y1 - y0, x1 - x0), bool)
+    band = np.full((y1 - y0, x1 - x0), 255, np.uint8)
     # the object's pixels, clipped to the band's rectangle
     ix0, iy0 = max(x, x0), max(y, y0)
     ix1, iy1 = min(x + w, x1), min(y + h, y1)
     if ix1 > ix0 and iy1 > iy0:
-        band[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = inner[iy0 - y:iy1 - y, ix0 - x:ix1 - x] == 0
-    if not band.any():
+        band[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0][inner[iy0 - y:iy1 - y, ix0 - x:ix1 - x] != 0] = 0
+    values = mag[band != 0]
+    if values.size == 0:
         return None
-    return (float(np.percentile(mag[band], 75)),
-            float(grey[y0:y1, x0:x1][band].astype(np.float32).std()))
+    _, std = cv2.meanStdDev(grey[y0:y1, x0:x1], mask=band)
+    return _percentile(values, 75.0), float(std[0, 0])
+
+
+def _percentile(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) by partial sorting: 5-10x faster."""
+    pos = (values.size - 1) * q / 100.0
+    lo = int(pos)
+    hi = min(lo + 1, values.size - 1)
+    part = np.partition(values, (lo, hi))
+    return float(part[lo] + (part[hi] - part[lo]) * (pos - lo))
 
 
 def straightness(trail: tuple[tuple[float, float], ...], n: int) -> float:
     """Net displacement over path length of the last ``n`` trail points (0-1; 0 if < 3)."""
     if len(trail) < 3:
         return 0.0
-    pts = np.asarray(trail[-n:], float)
-    path = float(np.sum(np.hypot(*np.diff(pts, axis=0).T)))
+    pts = trail[-n:]
+    path = sum(math.hypot(b[0] - a[0], b[1] - a[1]) for a, b in zip(pts[:-1], pts[1:], strict=True))
     if path < 1e-6:
         return 0.0
-    return min(1.0, float(np.hypot(*(pts[-1] - pts[0]))) / path)
+    return min(1.0, math.hypot(pts[-1][0] - pts[0][0], pts[-1][1] - pts[0][1]) / path)
 
 
 def logistic(bias: float, weights: tuple[float, ...], features: tuple[float, ...]) -> float:
@@ -132,15 +144,17 @@ class TrackConfidence:
         for t in tracks:
             ev = self._evidence.get(t.track_id)
             if ev is None:
-                ev = _Evidence(deque(maxlen=cfg.history_frames), deque(maxlen=cfg.history_frames),
-                               deque(maxlen=cfg.history_frames), deque(maxlen=cfg.match_frames))
+                n = cfg.history_frames
+                ev = _Evidence(deque(maxlen=n), deque(maxlen=n), deque(maxlen=n), deque(maxlen=n),
+                               deque(maxlen=cfg.match_frames))
                 self._evidence[t.track_id] = ev
             ev.seen = True
             ev.matched.append(t.matched)
             if t.matched and t.cluster is not None:
                 inner, _ = t.cluster.pixel_mask()
                 _, _, w, h = t.cluster.box
-                ev.shape.append((math.log(max(w, h) / max(1, min(w, h))), t.cluster.area / max(1, w * h)))
+                ev.elongation.append(math.log(max(w, h) / max(1, min(w, h))))
+                ev.fill.append(t.cluster.area / max(1, w * h))
                 tex = ring_texture(grey, t.cluster.box, inner, cfg.ring_px)
                 if tex is not None:
                     ev.gradient.append(tex[0])
@@ -148,11 +162,12 @@ class TrackConfidence:
             features = (
                 1.0 if t.matched else 0.0,
                 math.log1p(t.hits),
-                math.log1p(float(np.median(ev.gradient))) if ev.gradient else 0.0,
-                math.log1p(float(np.median(ev.std))) if ev.std else 0.0,
+                math.log1p(median(ev.gradient)) if ev.gradient else 0.0,
+                math.log1p(median(ev.std)) if ev.std else 0.0,
                 straightness(t.trail, cfg.straightness_frames),
                 sum(ev.matched) / len(ev.matched),
-                *(np.median(np.array(ev.shape), axis=0).tolist() if ev.shape else (0.0, 1.0)),
+                median(ev.elongation) if ev.elongation else 0.0,
+                median(ev.fill) if ev.fill else 1.0,
             )
             conf = logistic(cfg.bias, self.weights, features)
             reported = conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched
