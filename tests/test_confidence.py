@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -51,6 +52,29 @@ def test_ring_texture_sees_sky_as_plain_and_trees_as_textured() -> None:
     assert g_tree > 50 and s_tree > 10
     # off the frame: no band to measure
     assert ring_texture(sky, (-40, -40, 8, 8), inner, 10) is None
+
+
+def test_ring_texture_is_the_same_wherever_the_image_lies_in_memory() -> None:
+    """A replay must repeat a flight exactly: the texture of the same pixels may not depend on
+    the buffer's address (cv2.magnitude's vector and scalar paths round differently)."""
+    grey = textured(120, 160, seed=7)
+    inner = np.zeros((17, 23), np.uint8)
+    inner[3:14, 4:20] = 255
+    ref = ring_texture(grey, (61, 47, 23, 17), inner, 10)
+    assert ref is not None
+    for offset in range(1, 64):
+        raw = np.zeros(grey.size + offset, np.uint8)
+        moved = raw[offset:].reshape(grey.shape)
+        moved[:] = grey
+        assert ring_texture(moved, (61, 47, 23, 17), inner, 10) == ref, offset
+    # and it is the 75th percentile of the gradient magnitude in the band (box + 10 px, minus
+    # the object's pixels) and the grey standard deviation there
+    band = np.ones((37, 43), bool)  # rows 37-73, columns 51-93
+    band[10:27, 10:33] = inner == 0
+    gx = cv2.Sobel(grey, cv2.CV_64F, 1, 0, ksize=3)[37:74, 51:94]
+    gy = cv2.Sobel(grey, cv2.CV_64F, 0, 1, ksize=3)[37:74, 51:94]
+    assert ref[0] == pytest.approx(np.percentile(np.hypot(gx, gy)[band], 75), rel=1e-9)
+    assert ref[1] == pytest.approx(grey[37:74, 51:94][band].std(), rel=1e-9)
 
 
 def test_straightness_of_a_line_and_of_a_jitter() -> None:
