@@ -33,6 +33,7 @@ Box = tuple[float, float, float, float]  # x, y, w, h in image px (top-left corn
 # goodFeaturesToTrack over the whole frame: the usual choice of full-frame stabilisers
 # (OpenCV's videostab motion estimator defaults to 1000; 500 is a common lighter setting).
 FULL_FRAME_CORNERS = 500
+_NO_POINTS = np.empty((0, 2), np.float32)
 
 
 def border_windows(width: int, height: int, size: int, count: int) -> list[tuple[int, int, int, int]]:
@@ -98,8 +99,8 @@ class MotionDetector:
         self._cur: np.ndarray | None = None  # frame t
         self._h_prev_cur: np.ndarray | None = None  # H_{t-1,t}
         self._hist_cur: np.ndarray | None = None
-        self._pts = np.empty((0, 2), np.float32)  # tracked points in frame t, px
-        self._pt_win = np.empty(0, np.int32)  # window index of each point
+        # tracked points in frame t, one (k, 2) float32 array of image px per border window
+        self._win_pts: list[np.ndarray] = [_NO_POINTS] * len(self._windows)
         self._textureless = np.zeros(len(self._windows), bool)  # per window, newest frame
         self.featureless = False  # the newest H came from the blank-border fallback
 
@@ -113,7 +114,9 @@ class MotionDetector:
         self._crops = [(max(0, x0 - m), max(0, y0 - m), min(w, x1 + m), min(h, y1 + m))
                        for x0, y0, x1, y1 in self._windows]
         self._shape = shape
+        self._origins = [np.array([x0, y0], np.float32) for x0, y0, _, _ in self._crops]
         self._textureless = np.zeros(len(self._windows), bool)
+        self._win_pts = [_NO_POINTS] * len(self._windows)
 
     # ------------------------------------------------------------------ main step
 
@@ -146,7 +149,7 @@ class MotionDetector:
             return DetectionResult(None, "scene_cut", None, 0, 0, timings)
 
         excluded = self._excluded_windows(exclude)
-        h_cur_next, inliers, next_pts, next_win = self._estimate(self._cur, gray, excluded)
+        h_cur_next, inliers, next_pts = self._estimate(self._cur, gray, excluded)
         t1 = time.perf_counter()
         timings["flow_ms"] = (t1 - t0) * 1e3
 
@@ -162,7 +165,7 @@ class MotionDetector:
         self._has_prev = True
         self._cur, self._hist_cur = gray, hist
         self._h_prev_cur = h_cur_next
-        self._pts, self._pt_win = next_pts, next_win
+        self._win_pts = next_pts
         self._reseed(gray)
         return result
 
@@ -186,73 +189,79 @@ class MotionDetector:
 
     def _estimate(
         self, cur: np.ndarray, nxt: np.ndarray, excluded: set[int]
-    ) -> tuple[np.ndarray | None, int, np.ndarray, np.ndarray]:
-        """H_{t,t+1} from LK flow of the tracked points; also the surviving points in t+1."""
-        empty = (np.empty((0, 2), np.float32), np.empty(0, np.int32))
+    ) -> tuple[np.ndarray | None, int, list[np.ndarray]]:
+        """H_{t,t+1} from LK flow of the tracked points; also each window's surviving points
+        in t+1 (those that stayed inside their own window)."""
         self.featureless = False
-        if len(self._pts) < 4:
-            if self._featureless_border(self._pt_win):
+        n_windows = len(self._windows)
+        if sum(len(p) for p in self._win_pts) < 4:
+            if self._featureless_border([len(p) > 0 for p in self._win_pts]):
                 self.featureless = True
-                return np.eye(3), 0, self._pts[:0], self._pt_win[:0]
-            return None, 0, *empty
-        p0, p1, win = self._flow(cur, nxt)
-        vote = ~np.isin(win, list(excluded)) if excluded else np.ones(len(win), bool)
-        if excluded and vote.sum() < self.cfg.min_inliers:
-            vote[:] = True  # every window is covered: better the object's points than none
+                return np.eye(3), 0, [_NO_POINTS] * n_windows
+            return None, 0, [_NO_POINTS] * n_windows
+        flow = self._flow(cur, nxt)
+        voting = [i for i in range(n_windows) if len(flow[i][0]) and i not in excluded]
+        n_vote = sum(len(flow[i][0]) for i in voting)
+        if excluded and n_vote < self.cfg.min_inliers:
+            # every window is covered: better the object's points than none
+            voting = [i for i in range(n_windows) if len(flow[i][0])]
+            n_vote = sum(len(flow[i][0]) for i in voting)
         h = None
         inliers = 0
-        if vote.sum() >= max(4, self.cfg.min_inliers):
+        if n_vote >= max(4, self.cfg.min_inliers):
             h, inl = cv2.findHomography(
-                p0[vote], p1[vote], cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500
+                np.concatenate([flow[i][0] for i in voting]), np.concatenate([flow[i][1] for i in voting]),
+                cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500,
             )
             inliers = int(inl.sum()) if inl is not None else 0
             if h is None or inliers < self.cfg.min_inliers or not _plausible(h):
                 h = None
-        elif self._featureless_border(win[vote]):
+        elif self._featureless_border([i in voting for i in range(n_windows)]):
             # Too few points because the border is blank sky, not because the points disagree:
             # a misregistered blank sky differs from itself by nothing, so a translation by
             # the median flow of what points there are (or none) is a safe model.
-            shift = np.median(p1[vote] - p0[vote], axis=0) if vote.sum() >= 3 else np.zeros(2)
+            if n_vote >= 3:
+                moves = np.concatenate([flow[i][1] - flow[i][0] for i in voting])
+                shift = np.median(moves, axis=0)
+            else:
+                shift = np.zeros(2)
             h = np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]], float)
             self.featureless = True
         # Keep points that stay inside their own window in frame t+1.
-        wins = np.asarray(self._windows, np.float32)[win]
-        inside = (
-            (p1[:, 0] >= wins[:, 0]) & (p1[:, 0] < wins[:, 2])
-            & (p1[:, 1] >= wins[:, 1]) & (p1[:, 1] < wins[:, 3])
-        )
-        return h, inliers, p1[inside].astype(np.float32), win[inside]
+        kept = []
+        for (x0, y0, x1, y1), (_, p1) in zip(self._windows, flow, strict=True):
+            if len(p1):
+                x, y = p1[:, 0], p1[:, 1]
+                p1 = p1[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+            kept.append(p1)
+        return h, inliers, kept
 
-    def _flow(self, cur: np.ndarray, nxt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """LK flow of the tracked points, t -> t+1; only the points LK could follow.
+    def _flow(self, cur: np.ndarray, nxt: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """LK flow of each window's tracked points, t -> t+1: per window, the points LK
+        could follow, in t and in t+1 (image px; two (k, 2) float32 arrays).
 
         Each window is flowed inside its own crop (window + ``lk_search_px``): building
         image pyramids of six small crops costs a fraction of two whole frames.
         """
-        p0s, p1s, wins = [], [], []
-        for i, (x0, y0, x1, y1) in enumerate(self._crops):
-            sel = self._pt_win == i
-            if not sel.any():
+        out: list[tuple[np.ndarray, np.ndarray]] = []
+        for (x0, y0, x1, y1), origin, pts in zip(self._crops, self._origins, self._win_pts, strict=True):
+            if not len(pts):
+                out.append((_NO_POINTS, _NO_POINTS))
                 continue
-            origin = np.array([x0, y0], np.float32)
-            q0 = (self._pts[sel] - origin).reshape(-1, 1, 2)
+            q0 = (pts - origin).reshape(-1, 1, 2)
             q1, status, _err = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]  # stubs reject nextPts=None; the API accepts it
                 cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0, None, **self._lk_params
             )
             if q1 is None:
+                out.append((_NO_POINTS, _NO_POINTS))
                 continue
             ok = status.ravel() == 1
-            p0s.append(q0.reshape(-1, 2)[ok] + origin)
-            p1s.append(q1.reshape(-1, 2)[ok] + origin)
-            wins.append(np.full(int(ok.sum()), i, np.int32))
-        if not p0s:
-            return np.empty((0, 2), np.float32), np.empty((0, 2), np.float32), np.empty(0, np.int32)
-        return np.concatenate(p0s), np.concatenate(p1s), np.concatenate(wins)
+            out.append((q0.reshape(-1, 2)[ok] + origin, q1.reshape(-1, 2)[ok] + origin))
+        return out
 
-    def _featureless_border(self, point_windows: np.ndarray) -> bool:
+    def _featureless_border(self, has_points: list[bool]) -> bool:
         """True when every window without points is blank (and at least one is)."""
-        empty = np.ones(len(self._windows), bool)
-        empty[np.unique(point_windows)] = False
+        empty = ~np.asarray(has_points, bool)
         return bool(empty.any() and self._textureless[empty].all())
 
     def _reseed(self, gray: np.ndarray) -> None:
@@ -263,15 +272,10 @@ class MotionDetector:
             pts = cv2.goodFeaturesToTrack(
                 gray, FULL_FRAME_CORNERS, c.feature_quality, c.feature_min_distance_px
             )
-            pts = np.empty((0, 2), np.float32) if pts is None else pts.reshape(-1, 2)
-            self._pts, self._pt_win = pts.astype(np.float32), np.zeros(len(pts), np.int32)
+            self._win_pts = [_NO_POINTS if pts is None else pts.reshape(-1, 2).astype(np.float32)]
             return
-        counts = np.bincount(self._pt_win, minlength=len(self._windows))
-        new_pts = [self._pts]
-        new_win = [self._pt_win]
-        keep = np.ones(len(self._pts), bool)
         for i, (x0, y0, x1, y1) in enumerate(self._windows):
-            if counts[i] >= c.min_points_per_window:
+            if len(self._win_pts[i]) >= c.min_points_per_window:
                 continue
             patch = gray[y0:y1, x0:x1]
             self._textureless[i] = float(cv2.cornerMinEigenVal(patch, 3).max()) < c.min_texture
@@ -282,13 +286,8 @@ class MotionDetector:
             )
             if found is None:
                 continue
-            keep &= self._pt_win != i  # replace the window's thin set with a fresh one
-            found = found.reshape(-1, 2) + np.array([x0, y0], np.float32)
-            new_pts.append(found.astype(np.float32))
-            new_win.append(np.full(len(found), i, np.int32))
-        new_pts[0], new_win[0] = self._pts[keep], self._pt_win[keep]
-        self._pts = np.concatenate(new_pts)
-        self._pt_win = np.concatenate(new_win)
+            # replace the window's thin set with a fresh one
+            self._win_pts[i] = (found.reshape(-1, 2) + np.array([x0, y0], np.float32)).astype(np.float32)
 
     # ------------------------------------------------------------------ differencing
 
