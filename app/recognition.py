@@ -113,22 +113,32 @@ class Recognizer:
         n = len(blobs)
         if n == 0:
             return []
-        n_groups, group = _components(box_gaps(blobs.boxes) < self.cfg.dist_px)
+        if n == 1:
+            groups = [[0]]
+        else:
+            n_groups, group = _components(box_gaps(blobs.boxes) < self.cfg.dist_px)
+            groups = [[] for _ in range(n_groups)]
+            for i, g in enumerate(group.tolist()):
+                groups[g].append(i)
+        # A few blobs per frame is the usual case: plain Python on lists beats numpy calls here.
+        areas: list[float] = blobs.areas.tolist()
+        cents: list[list[float]] = blobs.centroids.tolist()
+        boxes: list[list[int]] = blobs.boxes.tolist()
         out: list[Cluster] = []
         max_area = self.cfg.max_cluster_frac * frame_area
-        for g in range(n_groups):
-            idx = np.flatnonzero(group == g)
-            a = blobs.areas[idx]
-            total = int(round(a.sum()))
+        for idx in groups:
+            total = int(round(sum(areas[i] for i in idx)))
             if total < self.cfg.area_px or total > max_area:
                 continue
-            cx, cy = (blobs.centroids[idx] * a[:, None]).sum(axis=0) / total
-            b = blobs.boxes[idx]
-            x0, y0 = int(b[:, 0].min()), int(b[:, 1].min())
-            x1, y1 = int((b[:, 0] + b[:, 2]).max()), int((b[:, 1] + b[:, 3]).max())
+            cx = sum(cents[i][0] * areas[i] for i in idx) / total
+            cy = sum(cents[i][1] * areas[i] for i in idx) / total
+            x0 = min(boxes[i][0] for i in idx)
+            y0 = min(boxes[i][1] for i in idx)
+            x1 = max(boxes[i][0] + boxes[i][2] for i in idx)
+            y1 = max(boxes[i][1] + boxes[i][3] for i in idx)
             if total < self.cfg.min_fill * (x1 - x0) * (y1 - y0):
                 continue
-            out.append(Cluster(float(cx), float(cy), (x0, y0, x1 - x0, y1 - y0), total,
+            out.append(Cluster(cx, cy, (x0, y0, x1 - x0, y1 - y0), total,
                                tuple(blobs.contours[i] for i in idx)))
         return out
 
