@@ -77,7 +77,9 @@ def _parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="time stages 1-3 on 640x480 frames, windows vs full-frame features")
     b.add_argument("--frames", type=int, default=300)
-    b.add_argument("--repeats", type=int, default=3, help="interleaved runs of each variant")
+    b.add_argument("--repeats", type=int, default=5, help="interleaved runs of each variant")
+    b.add_argument("--warmup", type=float, default=3.0, metavar="S",
+                   help="run both variants this long before timing, s")
     b.add_argument("--soak", type=int, default=0, metavar="N",
                    help="also replay N frames and report memory (e.g. 10000)")
     b.add_argument("--json", action="store_true", help="last line: one JSON object")
@@ -288,7 +290,12 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
         return 0
     if args.frames < 30:
         raise UsageError(f"--frames {args.frames}: must be at least 30")
-    result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak)
+    if args.repeats < 1:
+        raise UsageError(f"--repeats {args.repeats}: must be at least 1")
+    if args.warmup < 0:
+        raise UsageError(f"--warmup {args.warmup}: must be >= 0")
+    result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak,
+                       warmup_s=args.warmup)
     print(format_bench(result))
     if args.json:
         print(json.dumps(result))
