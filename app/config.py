@@ -64,11 +64,20 @@ class DetectionConfig:
     )
     feature_min_distance_px: float = param(5.0, "min spacing of seeded points, px", gt=0)
     lk_window_px: int = param(21, "Lucas-Kanade search window side, px", ge=5, odd=True)
-    lk_pyramid_levels: int = param(3, "Lucas-Kanade pyramid levels above the base", ge=0, le=6)
+    lk_pyramid_levels: int = param(
+        2,
+        "Lucas-Kanade pyramid levels above the base (each larger than the LK window in a "
+        "window_px + lk_search_px crop: checked at start)",
+        ge=0, le=6,
+    )
     lk_search_px: int = param(
         48, "how far beyond its window a point may move between frames, px", ge=8
     )
     lk_max_iterations: int = param(10, "Lucas-Kanade iterations per level", ge=1)
+    lk_predict: bool = param(
+        True,
+        "start each window's LK at its points moved by the window's last median flow (fast pans)",
+    )
     lk_min_eigen: float = param(
         1e-4, "drop LK points whose gradient matrix is weaker (featureless sky)", gt=0
     )
@@ -174,17 +183,17 @@ class ConfidenceConfig:
         10, "straightness is measured over this many of the latest trail points, frames", ge=3
     )
     match_frames: int = param(10, "match fraction over this many of the latest frames", ge=1)
-    bias: float = param(-1.6009, "logistic regression intercept")
-    w_matched: float = param(1.02, "weight of: matched in this frame (0/1)")
-    w_log_hits: float = param(0.8453, "weight of: log(1 + frames matched)")
+    bias: float = param(-0.8072, "logistic regression intercept")
+    w_matched: float = param(0.8633, "weight of: matched in this frame (0/1)")
+    w_log_hits: float = param(0.7143, "weight of: log(1 + frames matched)")
     w_ring_gradient: float = param(
-        -0.8615, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+        -0.8802, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
     )
-    w_ring_std: float = param(-0.7905, "weight of: log(1 + median grey std in the ring, grey levels)")
-    w_straightness: float = param(1.0363, "weight of: net displacement / path length (0-1)")
-    w_match_fraction: float = param(3.4003, "weight of: fraction of recent frames matched (0-1)")
-    w_elongation: float = param(-3.0281, "weight of: median log(long / short side) of the cluster box")
-    w_fill: float = param(-0.8038, "weight of: median blob area / box area of the cluster (0-1)")
+    w_ring_std: float = param(-0.7953, "weight of: log(1 + median grey std in the ring, grey levels)")
+    w_straightness: float = param(0.7093, "weight of: net displacement / path length (0-1)")
+    w_match_fraction: float = param(3.676, "weight of: fraction of recent frames matched (0-1)")
+    w_elongation: float = param(-3.1963, "weight of: median log(long / short side) of the cluster box")
+    w_fill: float = param(-0.8607, "weight of: median blob area / box area of the cluster (0-1)")
 
 
 @dataclass(frozen=True)
@@ -553,6 +562,18 @@ def _check(key: str, value: Any, typ: Any, meta: Mapping[str, Any]) -> Any:
     return value
 
 
+def pyramid_levels_held(image_px: int, lk_window_px: int) -> int:
+    """How many pyramid levels above the base OpenCV's LK builds for an image whose smaller
+    side is ``image_px``: it halves the side (rounding up) and stops before a level that is
+    not larger than the LK window (cv2.buildOpticalFlowPyramid; checked in the tests)."""
+    levels, side = 0, image_px
+    while True:
+        side = (side + 1) // 2
+        if side <= lk_window_px:
+            return levels
+        levels += 1
+
+
 def check_consistency(cfg: Config) -> None:
     """Rules that tie several keys together."""
     d = cfg.perception.detection
@@ -560,6 +581,19 @@ def check_consistency(cfg: Config) -> None:
         raise ConfigError(
             f"perception.detection.min_points_per_window = {d.min_points_per_window}: "
             f"must be <= max_points_per_window ({d.max_points_per_window})"
+        )
+    crop = d.window_px + d.lk_search_px  # a corner window's crop: grown inwards only
+    held = pyramid_levels_held(crop, d.lk_window_px)
+    if d.lk_pyramid_levels > held:
+        # OpenCV would silently build fewer levels than asked for (it did here, unnoticed, until
+        # v0.1: 3 were configured, 2 ran), and with them track smaller camera motions.
+        need = d.lk_search_px
+        while pyramid_levels_held(d.window_px + need, d.lk_window_px) < d.lk_pyramid_levels:
+            need += 1
+        raise ConfigError(
+            f"perception.detection.lk_pyramid_levels = {d.lk_pyramid_levels}: a {crop} px crop "
+            f"(window_px + lk_search_px) holds at most {held} levels larger than the "
+            f"{d.lk_window_px} px LK window; lower it, or raise lk_search_px to {need}"
         )
     dc = cfg.decision
     if dc.min_range_m >= dc.max_range_m:

@@ -101,6 +101,8 @@ class MotionDetector:
         self._hist_cur: np.ndarray | None = None
         # tracked points in frame t, one (k, 2) float32 array of image px per border window
         self._win_pts: list[np.ndarray] = [_NO_POINTS] * len(self._windows)
+        # per border window, the median flow t-1 -> t of its points (image px), if it had any
+        self._win_shift: list[np.ndarray | None] = [None] * len(self._windows)
         self._textureless = np.zeros(len(self._windows), bool)  # per window, newest frame
         self.featureless = False  # the newest H came from the blank-border fallback
 
@@ -117,6 +119,7 @@ class MotionDetector:
         self._origins = [np.array([x0, y0], np.float32) for x0, y0, _, _ in self._crops]
         self._textureless = np.zeros(len(self._windows), bool)
         self._win_pts = [_NO_POINTS] * len(self._windows)
+        self._win_shift = [None] * len(self._windows)
 
     # ------------------------------------------------------------------ main step
 
@@ -244,19 +247,33 @@ class MotionDetector:
         image pyramids of six small crops costs a fraction of two whole frames.
         """
         out: list[tuple[np.ndarray, np.ndarray]] = []
-        for (x0, y0, x1, y1), origin, pts in zip(self._crops, self._origins, self._win_pts, strict=True):
+        for i, ((x0, y0, x1, y1), origin, pts) in enumerate(
+                zip(self._crops, self._origins, self._win_pts, strict=True)):
+            shift, self._win_shift[i] = self._win_shift[i], None
             if not len(pts):
                 out.append((_NO_POINTS, _NO_POINTS))
                 continue
             q0 = (pts - origin).reshape(-1, 1, 2)
-            q1, status, _err = cv2.calcOpticalFlowPyrLK(  # type: ignore[call-overload]  # stubs reject nextPts=None; the API accepts it
-                cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0, None, **self._lk_params
+            if self.cfg.lk_predict and shift is not None:
+                # Camera motion changes little from one frame to the next: start LK where the
+                # window's own last flow carries its points, so the pyramid only has to find
+                # the change of motion (a 2-level pyramid then follows pans of 48 px/frame).
+                guess, flags = q0 + shift, cv2.OPTFLOW_USE_INITIAL_FLOW
+            else:
+                guess, flags = None, 0
+            q1, status, _err = cv2.calcOpticalFlowPyrLK(
+                cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0,
+                guess,  # None: LK starts at the points themselves
+                flags=flags, **self._lk_params,
             )
             if q1 is None:
                 out.append((_NO_POINTS, _NO_POINTS))
                 continue
             ok = status.ravel() == 1
-            out.append((q0.reshape(-1, 2)[ok] + origin, q1.reshape(-1, 2)[ok] + origin))
+            p0, p1 = q0.reshape(-1, 2)[ok] + origin, q1.reshape(-1, 2)[ok] + origin
+            out.append((p0, p1))
+            if len(p0):
+                self._win_shift[i] = np.median(p1 - p0, axis=0).astype(np.float32)  # image px
         return out
 
     def _featureless_border(self, has_points: list[bool]) -> bool:

@@ -58,6 +58,9 @@ def test_yaml_dump_round_trips() -> None:
         ({"flight": {"mode": "test"}}, "flight.mode = 'test': must be one of guard, shadow, test-flight"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
+        ({"perception": {"detection": {"lk_pyramid_levels": 3}}},
+         "perception.detection.lk_pyramid_levels = 3: a 118 px crop (window_px + lk_search_px) holds "
+         "at most 2 levels larger than the 21 px LK window; lower it, or raise lk_search_px to 99"),
     ],
 )
 def test_bad_values_name_key_value_and_rule(data: dict, message: str) -> None:

@@ -110,3 +110,48 @@ def test_scene_cut_resets_instead_of_flagging_the_whole_frame() -> None:
     r = det.push(dark)
     assert r.status == "scene_cut" and r.mask is None
     assert det.push(dark).status == "warmup"
+
+
+def _ramped_pan(k: int, accel: float, top_speed: float) -> np.ndarray:
+    """Frame k's camera: a pan that speeds up by ``accel`` px/frame each frame to ``top_speed``
+    (a multirotor's yaw cannot jump), with a slight roll and tilt."""
+    x = sum(min(top_speed, accel * (i + 1)) for i in range(k))
+    a = 0.001 * k
+    return np.array([[np.cos(a), -np.sin(a), -x], [np.sin(a), np.cos(a), 0.3 * k], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("predict", [True, False])
+def test_fast_camera_pans_are_registered_when_lk_starts_from_the_last_flow(predict: bool) -> None:
+    """Up to 40 px/frame (140 deg/s of yaw at 60 fps with a 615 px lens). Without the start
+    from each window's last flow, the 2-level pyramid loses pans beyond about 20 px/frame and,
+    worse, agrees on a wrong shift that RANSAC accepts."""
+    base = textured(480, 640 + 1800, seed=3)
+    det = MotionDetector(DetectionConfig(lk_predict=predict))
+    probe = np.array([[[x, y]] for x in (20.0, 320.0, 620.0) for y in (20.0, 240.0, 460.0)])
+    errors = []
+    for k in range(50):
+        r = det.push(cv2.warpPerspective(base, _ramped_pan(k, 2.0, 40.0), (640, 480),
+                                         flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT))
+        if k >= 2:
+            truth = _ramped_pan(k - 1, 2.0, 40.0) @ np.linalg.inv(_ramped_pan(k - 2, 2.0, 40.0))
+            if r.homography is None:
+                errors.append(np.inf)
+                continue
+            moved = cv2.perspectiveTransform(probe, r.homography)
+            true = cv2.perspectiveTransform(probe, truth)
+            errors.append(float(np.abs(moved - true).max()))
+    fast = np.array(errors[20:])  # from frame 20 on the pan runs at 40 px/frame
+    if predict:
+        assert max(errors) < 1.0  # px, everywhere in the frame, the whole way up
+    else:
+        assert (fast > 5.0).mean() > 0.5  # most fast frames misregistered
+
+
+def test_pyramid_levels_held_agree_with_opencv() -> None:
+    from app.config import pyramid_levels_held
+
+    for win in (5, 11, 13, 15, 21, 31):
+        for side in range(win, 400, 7):
+            built, _ = cv2.buildOpticalFlowPyramid(np.zeros((side, side + 40), np.uint8), (win, win), 10,
+                                                   withDerivatives=False)
+            assert pyramid_levels_held(side, win) == built, (side, win)
