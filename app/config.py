@@ -183,17 +183,17 @@ class ConfidenceConfig:
         10, "straightness is measured over this many of the latest trail points, frames", ge=3
     )
     match_frames: int = param(10, "match fraction over this many of the latest frames", ge=1)
-    bias: float = param(-0.8072, "logistic regression intercept")
-    w_matched: float = param(0.8633, "weight of: matched in this frame (0/1)")
-    w_log_hits: float = param(0.7143, "weight of: log(1 + frames matched)")
+    bias: float = param(-1.6614, "logistic regression intercept")
+    w_matched: float = param(0.9403, "weight of: matched in this frame (0/1)")
+    w_log_hits: float = param(0.7362, "weight of: log(1 + frames matched)")
     w_ring_gradient: float = param(
-        -0.8802, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+        -0.9364, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
     )
-    w_ring_std: float = param(-0.7953, "weight of: log(1 + median grey std in the ring, grey levels)")
-    w_straightness: float = param(0.7093, "weight of: net displacement / path length (0-1)")
-    w_match_fraction: float = param(3.676, "weight of: fraction of recent frames matched (0-1)")
-    w_elongation: float = param(-3.1963, "weight of: median log(long / short side) of the cluster box")
-    w_fill: float = param(-0.8607, "weight of: median blob area / box area of the cluster (0-1)")
+    w_ring_std: float = param(-0.7128, "weight of: log(1 + median grey std in the ring, grey levels)")
+    w_straightness: float = param(0.9019, "weight of: net displacement / path length (0-1)")
+    w_match_fraction: float = param(3.4811, "weight of: fraction of recent frames matched (0-1)")
+    w_elongation: float = param(-2.6018, "weight of: median log(long / short side) of the cluster box")
+    w_fill: float = param(-0.1603, "weight of: median blob area / box area of the cluster (0-1)")
 
 
 @dataclass(frozen=True)

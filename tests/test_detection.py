@@ -155,3 +155,33 @@ def test_pyramid_levels_held_agree_with_opencv() -> None:
             built, _ = cv2.buildOpticalFlowPyramid(np.zeros((side, side + 40), np.uint8), (win, win), 10,
                                                    withDerivatives=False)
             assert pyramid_levels_held(side, win) == built, (side, win)
+
+
+def test_a_pan_already_fast_at_the_start_is_registered_from_a_whole_frame_shift() -> None:
+    """After a start or a reset (camera restarted mid-yaw) there is no last flow to start
+    from: a phase correlation of the whole frame supplies it."""
+    base = textured(480, 640 + 800, seed=3)
+    det = MotionDetector(DetectionConfig())
+    probe = np.array([[[x, y]] for x in (20.0, 320.0, 620.0) for y in (20.0, 240.0, 460.0)])
+    results = []
+    for k in range(8):  # 25 px/frame from the first frame on
+        results.append(det.push(cv2.warpPerspective(base, _ramped_pan(k, 25.0, 25.0), (640, 480),
+                                                    flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)))
+    for k in range(2, 8):
+        h = results[k].homography
+        truth = _ramped_pan(k - 1, 25.0, 25.0) @ np.linalg.inv(_ramped_pan(k - 2, 25.0, 25.0))
+        assert h is not None, k
+        err = np.abs(cv2.perspectiveTransform(probe, h) - cv2.perspectiveTransform(probe, truth)).max()
+        assert err < 1.0, (k, err)
+    assert all(r.status == "ok" for r in results[2:])
+
+
+def test_whole_frame_shift_has_the_flow_sign() -> None:
+    from app.detection import _global_shift
+
+    base = textured(480, 700, seed=1)
+    shift = _global_shift(base[:, 30:670], base[:, 10:650])  # content moves 20 px to the right
+    assert shift is not None and np.allclose(shift, (20.0, 0.0), atol=1.0)
+    sky = np.full((480, 640), 180, np.uint8)
+    blank = _global_shift(sky, sky)  # nothing to correlate: no peak, or no motion
+    assert blank is None or np.abs(blank).max() < 1.0
