@@ -95,7 +95,8 @@ def test_depth_is_read_on_the_blob_through_the_calibration() -> None:
     import cv2
     mask = disc.astype(np.uint8) * 255
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    cl = Cluster(400.0, 200.0, cv2.boundingRect(contours[0]), int(disc.sum()), tuple(contours))
+    bx, by, bw, bh = cv2.boundingRect(contours[0])
+    cl = Cluster(400.0, 200.0, (bx, by, bw, bh), int(disc.sum()), tuple(contours))
     d = object_depth(cl, depth, CAM, 0.2, 10.0, 25, 6)
     assert d is not None and abs(d.z_m - 2.0) < 0.01
     x, y, zz = d.xyz_m
@@ -265,7 +266,7 @@ def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path
     # the ball is at z = 8 - 4 * (f - 1) / 30 m: the evasion starts inside the avoidance
     # distance but before it is closer than the emergency distance
     z_at_start = 8.0 - 4.0 * (f0 - 1) / 30.0
-    assert PAPER.emergency_m < z_at_start <= PAPER.avoid_m + 0.15
+    assert PAPER.avoid_m is not None and PAPER.emergency_m < z_at_start <= PAPER.avoid_m + 0.15
     assert c0.right_mps > 0 and c0.down_mps > 0  # upper-left ball: down-right
     assert not any(c.action == STOP for f, c in stats.decisions if f < f0)
     assert all(c.action == NONE for f, c in stats.decisions if f < f0)

@@ -67,7 +67,7 @@ def test_shadow_mode_never_commands_and_says_what_it_would_do_once() -> None:
 def test_emergency_stop_streams_zero_and_speed_is_clamped() -> None:
     e = Engagement(FlightConfig(), max_speed_mps=1.0)
     out = e.tick(vs(0), Decision(Command(EVADE, 0.0, 3.0, 4.0, 1), 0.0))
-    assert math.isclose(math.hypot(*out.setpoint), 1.0)  # type: ignore[arg-type]
+    assert out.setpoint is not None and math.isclose(math.hypot(*out.setpoint), 1.0)
     e2 = Engagement(FlightConfig(), 3.0)
     t = engaged(e2)
     out = e2.tick(vs(t + DT, "offboard"), Decision(Command(STOP, object_id=1), t + DT))

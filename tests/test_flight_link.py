@@ -54,7 +54,7 @@ async def rig() -> AsyncIterator[tuple[SimPx4, Px4Link]]:
         yield sim, link
 
 
-async def run_loop(link: Px4Link, slot: Slot, cfg: FlightConfig | None = None):  # type: ignore[no-untyped-def]
+async def run_loop(link: Px4Link, slot: Slot, cfg: FlightConfig | None = None):
     eng = Engagement(cfg or FlightConfig(), max_speed_mps=3.0)
     stop = asyncio.Event()
     stats = LoopStats()

@@ -53,7 +53,7 @@ def test_a_recording_plays_back_bit_exact_with_its_calibration(
     assert len(got) == len(written)
     for a, b in zip(written, got, strict=True):
         assert b.color.flags.owndata and b.depth is not None and b.depth.flags.owndata
-        assert np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
+        assert a.depth is not None and np.array_equal(a.color, b.color) and np.array_equal(a.depth, b.depth)
     assert [f.index for f in got] == list(range(1, 31))
     assert np.allclose([f.t_s for f in got], [k / 30.0 for k in range(30)], atol=1e-6)
     cam = src.camera

@@ -53,7 +53,7 @@ async def airborne() -> AsyncIterator[tuple[Px4Link, ActionAsync]]:
 
 
 async def _run(link: Px4Link, commands: list[Command], hz: float = 15.0,
-               cfg: FlightConfig | None = None, hook=None):  # type: ignore[no-untyped-def]
+               cfg: FlightConfig | None = None, hook=None):
     latest: list[Decision | None] = [None]
     stop = asyncio.Event()
     eng = Engagement(cfg or FlightConfig(), 3.0)
@@ -77,7 +77,7 @@ async def _run(link: Px4Link, commands: list[Command], hz: float = 15.0,
 @pytest.mark.asyncio
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize(("right", "down"), [(1.5, 0.0), (-1.5, 0.0), (0.0, -1.0)])
-async def test_sitl_evasion_then_back_to_hold(airborne, right: float, down: float) -> None:  # type: ignore[no-untyped-def]
+async def test_sitl_evasion_then_back_to_hold(airborne, right: float, down: float) -> None:
     link, _ = airborne
     cmds = [Command(EVADE, 0.0, right, down, 1, "sitl")] * 30 + [Command(NONE)] * 45
     modes, vels = await _run(link, cmds)
@@ -87,7 +87,7 @@ async def test_sitl_evasion_then_back_to_hold(airborne, right: float, down: floa
 
 @pytest.mark.asyncio
 @pytest.mark.timeout(180)
-async def test_sitl_pilot_mode_change_wins(airborne) -> None:  # type: ignore[no-untyped-def]
+async def test_sitl_pilot_mode_change_wins(airborne) -> None:
     link, action = airborne
 
     async def pilot(k: int) -> None:
@@ -102,7 +102,7 @@ async def test_sitl_pilot_mode_change_wins(airborne) -> None:  # type: ignore[no
 
 @pytest.mark.asyncio
 @pytest.mark.timeout(180)
-async def test_sitl_stalled_perception_leaves_to_hold(airborne) -> None:  # type: ignore[no-untyped-def]
+async def test_sitl_stalled_perception_leaves_to_hold(airborne) -> None:
     link, action = airborne
     cmds = [Command(EVADE, 0.0, 1.5, 0.0, 1, "sitl")] * 15 + [None] * 45  # decisions stop
     modes, _ = await _run(link, cmds, cfg=FlightConfig(stale_release_s=1.0))  # type: ignore[arg-type]
