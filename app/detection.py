@@ -102,6 +102,9 @@ class MotionDetector:
         self._diff_cur: np.ndarray | None = None  # |I_t - W(I_{t-1})| in t's pixels
         self._cur: np.ndarray | None = None  # frame t
         self._h_prev_cur: np.ndarray | None = None  # H_{t-1,t}
+        self._t_prev: float | None = None  # capture times of frames t-1 and t, s
+        self._t_cur: float | None = None
+        self._interval_ratio = 1.0  # (t+1 - t) / (t - t-1) in quarters, 0.25-4
         self._hist_cur: np.ndarray | None = None
         # tracked points in frame t, one (k, 2) float32 array of image px per border window
         self._win_pts: list[np.ndarray] = [_NO_POINTS] * len(self._windows)
@@ -130,11 +133,15 @@ class MotionDetector:
 
     # ------------------------------------------------------------------ main step
 
-    def push(self, gray: np.ndarray, exclude: list[Box] | tuple[Box, ...] = ()) -> DetectionResult:
+    def push(self, gray: np.ndarray, exclude: list[Box] | tuple[Box, ...] = (),
+             t_s: float | None = None) -> DetectionResult:
         """Add frame t+1; return the motion mask of frame t.
 
         ``exclude`` holds boxes of tracked objects in frame t: border windows that
-        overlap them do not vote on the homography.
+        overlap them do not vote on the homography. ``t_s`` is frame t+1's capture time
+        (s, any clock): with it, LK's start from the last flow is scaled by how much longer
+        or shorter this frame interval is than the last one (frames skipped by a busy
+        perception thread double the motion between the frames it sees).
         """
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise ValueError(f"expected an 8-bit grey image, got {gray.dtype} {gray.shape}")
@@ -150,15 +157,23 @@ class MotionDetector:
 
         hist = _grey_histogram(gray)
         if self._cur is None or self._hist_cur is None:
-            self._start(gray, hist)
+            self._start(gray, hist, t_s)
             return DetectionResult(None, "warmup", None, 0, 0, timings)
         if cv2.compareHist(self._hist_cur, hist, cv2.HISTCMP_CORREL) < self.cfg.scene_cut_correlation:
             log.info("scene_cut", "scene cut detected: detector reset")
             self.reset()
-            self._start(gray, hist)
+            self._start(gray, hist, t_s)
             return DetectionResult(None, "scene_cut", None, 0, 0, timings)
 
         excluded = self._excluded_windows(exclude)
+        self._interval_ratio = 1.0
+        if t_s is not None and self._t_cur is not None and self._t_prev is not None:
+            last, now = self._t_cur - self._t_prev, t_s - self._t_cur
+            if last > 0 and now > 0:
+                # In quarters: the start needs no more, clock jitter (a few % at 60 fps) then
+                # never changes it, and a replay of the flight record, whose times are rounded
+                # to 1 us, starts LK exactly where the flight did.
+                self._interval_ratio = min(4.0, max(0.25, round(4.0 * now / last) / 4.0))
         h_cur_next, inliers, next_pts = self._estimate(self._cur, gray, excluded)
         t1 = time.perf_counter()
         timings["flow_ms"] = (t1 - t0) * 1e3
@@ -175,13 +190,15 @@ class MotionDetector:
         # Shift: t+1 becomes the current frame; H_{t,t+1} becomes next step's H_{t-1,t}.
         self._has_prev = True
         self._cur, self._hist_cur = gray, hist
+        self._t_prev, self._t_cur = self._t_cur, t_s
         self._h_prev_cur = h_cur_next
         self._win_pts = next_pts
         self._reseed(gray)
         return result
 
-    def _start(self, gray: np.ndarray, hist: np.ndarray) -> None:
+    def _start(self, gray: np.ndarray, hist: np.ndarray, t_s: float | None = None) -> None:
         self._cur, self._hist_cur = gray, hist
+        self._t_prev, self._t_cur = None, t_s
         self._reseed(gray)
 
     # ------------------------------------------------------------------ homography
@@ -255,6 +272,7 @@ class MotionDetector:
         image pyramids of six small crops costs a fraction of two whole frames.
         """
         out: list[tuple[np.ndarray, np.ndarray]] = []
+        scale = np.float32(self._interval_ratio)  # the last flow covered a different interval
         if self.cfg.lk_predict and self._lost_motion:
             # Nothing to predict from, or a prediction that just failed: a coarse phase
             # correlation of the whole frame gives every window its start when the frame
@@ -263,6 +281,7 @@ class MotionDetector:
             whole = _global_shift(cur, nxt)
             if whole is not None and float(np.hypot(*whole)) > self.cfg.lk_window_px / 2:
                 self._win_shift = [whole] * len(self._windows)
+                scale = np.float32(1.0)  # measured on this very pair
         for i, ((x0, y0, x1, y1), origin, pts) in enumerate(
                 zip(self._crops, self._origins, self._win_pts, strict=True)):
             shift, self._win_shift[i] = self._win_shift[i], None
@@ -270,16 +289,17 @@ class MotionDetector:
                 out.append((_NO_POINTS, _NO_POINTS))
                 continue
             q0 = (pts - origin).reshape(-1, 1, 2)
+            guess: np.ndarray | None
             if self.cfg.lk_predict and shift is not None:
                 # Camera motion changes little from one frame to the next: start LK where the
                 # window's own last flow carries its points, so the pyramid only has to find
                 # the change of motion (a 2-level pyramid then follows pans of 48 px/frame).
-                guess, flags = q0 + shift, cv2.OPTFLOW_USE_INITIAL_FLOW
+                guess, flags = q0 + shift * scale, cv2.OPTFLOW_USE_INITIAL_FLOW
             else:
                 guess, flags = None, 0
             q1, status, _err = cv2.calcOpticalFlowPyrLK(
                 cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0,
-                guess,  # None: LK starts at the points themselves
+                guess,  # type: ignore[arg-type]  # None (LK starts at the points) is accepted; the stubs say no
                 flags=flags, **self._lk_params,
             )
             if q1 is None:

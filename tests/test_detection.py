@@ -185,3 +185,35 @@ def test_whole_frame_shift_has_the_flow_sign() -> None:
     sky = np.full((480, 640), 180, np.uint8)
     blank = _global_shift(sky, sky)  # nothing to correlate: no peak, or no motion
     assert blank is None or np.abs(blank).max() < 1.0
+
+
+@pytest.mark.parametrize("with_times", [True, False])
+def test_frames_skipped_by_a_busy_perception_thread_are_registered_with_their_times(with_times: bool) -> None:
+    """A perception thread slower than the camera sees every 2nd or 3rd frame now and then:
+    the motion between the frames it sees jumps, and the start from the last flow must be
+    scaled by the interval (a pan of 12 px per 1/60 s)."""
+    base = textured(480, 640 + 1200, seed=3)
+    probe = np.array([[[x, y]] for x in (20.0, 320.0, 620.0) for y in (20.0, 240.0, 460.0)])
+
+    def cam(tick: int) -> np.ndarray:
+        return np.array([[1, 0, -12.0 * tick], [0, 1, 0.2 * tick], [0, 0, 1.0]])
+
+    ticks = np.cumsum([0, 1, 1, 1, 2, 1, 3, 1, 1, 2, 2, 1, 3, 3, 1, 1, 2, 1, 1, 3, 1, 2, 1, 1, 1, 2, 3, 1, 1])
+    det = MotionDetector(DetectionConfig())
+    errors = []
+    for k, tick in enumerate(ticks):
+        img = cv2.warpPerspective(base, cam(tick), (640, 480), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REFLECT)
+        r = det.push(img, t_s=tick / 60.0 if with_times else None)
+        if k >= 2:
+            truth = cam(ticks[k - 1]) @ np.linalg.inv(cam(ticks[k - 2]))
+            if r.homography is None:
+                errors.append(np.inf)
+                continue
+            moved = cv2.perspectiveTransform(probe, r.homography)
+            errors.append(float(np.abs(moved - cv2.perspectiveTransform(probe, truth)).max()))
+    bad = sum(e > 1.0 for e in errors)
+    if with_times:
+        assert bad == 0, errors
+    else:
+        assert bad >= 3  # without the times the start is off by a whole frame's motion
