@@ -292,8 +292,8 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
         raise UsageError(f"--frames {args.frames}: must be at least 30")
     if args.repeats < 1:
         raise UsageError(f"--repeats {args.repeats}: must be at least 1")
-    if args.warmup < 0:
-        raise UsageError(f"--warmup {args.warmup}: must be >= 0")
+    if not 0 <= args.warmup <= 600:  # also refuses nan, which would never end the warm-up
+        raise UsageError(f"--warmup {args.warmup}: must be between 0 and 600 s")
     result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak,
                        warmup_s=args.warmup)
     print(format_bench(result))

@@ -585,8 +585,8 @@ def check_consistency(cfg: Config) -> None:
     crop = d.window_px + d.lk_search_px  # a corner window's crop: grown inwards only
     held = pyramid_levels_held(crop, d.lk_window_px)
     if d.lk_pyramid_levels > held:
-        # OpenCV would silently build fewer levels than asked for (it did here, unnoticed, until
-        # v0.1: 3 were configured, 2 ran), and with them track smaller camera motions.
+        # OpenCV would silently build fewer levels than asked for (before this check 3 were
+        # configured and 2 ran, unnoticed), and with them track smaller camera motions.
         need = d.lk_search_px
         while pyramid_levels_held(d.window_px + need, d.lk_window_px) < d.lk_pyramid_levels:
             need += 1

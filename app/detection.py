@@ -308,7 +308,7 @@ class MotionDetector:
             ok = status.ravel() == 1
             p0, p1 = q0.reshape(-1, 2)[ok] + origin, q1.reshape(-1, 2)[ok] + origin
             out.append((p0, p1))
-            if len(p0):
+            if self.cfg.lk_predict and len(p0):
                 moves = np.sort(p1 - p0, axis=0)  # the median by sorting: np.median costs 10x here
                 self._win_shift[i] = (moves[(len(moves) - 1) // 2] + moves[len(moves) // 2]) / 2  # image px
         return out

@@ -95,3 +95,6 @@ def test_bench_command_reports_both_variants_as_json() -> None:
     bad = subprocess.run([sys.executable, "-m", "app.cli", "bench", "--repeats", "0"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--repeats 0: must be at least 1" in bad.stderr
+    nan = subprocess.run([sys.executable, "-m", "app.cli", "bench", "--warmup", "nan"],
+                         capture_output=True, text=True, timeout=60)
+    assert nan.returncode == 2 and "--warmup nan: must be between 0 and 600 s" in nan.stderr
