@@ -71,11 +71,12 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.nda
     x1, y1 = min(width, x + w + ring_px), min(height, y + h + ring_px)
     if x1 - x0 < 3 or y1 - y0 < 3:
         return None
-    # one pixel more on each side so that the Sobel kernel sees real neighbours at the edge
+    # one pixel more on each side so that the gradient kernel sees real neighbours at the edge
     ex0, ey0, ex1, ey1 = max(0, x0 - 1), max(0, y0 - 1), min(width, x1 + 1), min(height, y1 + 1)
-    roi = grey[ey0:ey1, ex0:ex1]
-    gx = cv2.Sobel(roi, cv2.CV_32F, 1, 0, ksize=3)[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0]
-    gy = cv2.Sobel(roi, cv2.CV_32F, 0, 1, ksize=3)[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0]
+    # Both 3x3 Sobel derivatives in one pass (int16; identical to two cv2.Sobel calls, at a
+    # third of their cost). The crop is copied: the kernel then borders it by reflection, which
+    # only the extra pixel sees, except at the frame's own edges (where Sobel reflects too).
+    gx, gy = cv2.spatialGradient(np.ascontiguousarray(grey[ey0:ey1, ex0:ex1]), ksize=3)
     band = np.full((y1 - y0, x1 - x0), 255, np.uint8)
     # the object's pixels, clipped to the band's rectangle
     ix0, iy0 = max(x, x0), max(y, y0)
@@ -83,12 +84,13 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.nda
     if ix1 > ix0 and iy1 > iy0:
         band[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0][inner[iy0 - y:iy1 - y, ix0 - x:ix1 - x] != 0] = 0
     sel = band != 0
-    gxs, gys = gx[sel], gy[sel]
-    # Squared magnitude: the Sobel responses of 8-bit grey are integers, so this is exact in
-    # float32 and the same on every run. (cv2.magnitude's vector and scalar paths round
-    # differently, and which pixels take which path follows the buffer's address: the same
-    # clip replayed twice gave confidences differing in the 8th digit, enough to flip a
-    # report now and then.) The percentile is taken of the squares, then rooted.
+    gxs = gx[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0][sel].astype(np.int32)
+    gys = gy[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0][sel].astype(np.int32)
+    # Squared magnitude in integers: exact, so the same on every run. (cv2.magnitude's vector
+    # and scalar paths round differently, and which pixels take which path follows the
+    # buffer's address: the same clip replayed twice gave confidences differing in the 8th
+    # digit, enough to flip a report now and then.) The percentile is taken of the squares,
+    # then rooted.
     squares = gxs * gxs + gys * gys
     if squares.size == 0:
         return None
@@ -98,12 +100,14 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.nda
 
 def _percentile_of_root(squares: np.ndarray, q: float) -> float:
     """``np.percentile(np.sqrt(squares), q)`` (linear interpolation) by partial sorting of
-    the squares (the root is monotonic, so the order statistics are the same): 5-10x faster."""
+    the squares (the root is monotonic, so the order statistics are the same): one partition
+    at the lower rank, the upper one is the least above it (measured: 26 -> 17 us on the
+    bench's rings, whose squares are 96 % repeats; np.percentile is 5-10x slower)."""
     pos = (squares.size - 1) * q / 100.0
     lo = int(pos)
-    hi = min(lo + 1, squares.size - 1)
-    part = np.partition(squares, (lo, hi))
-    a, b = math.sqrt(float(part[lo])), math.sqrt(float(part[hi]))
+    part = np.partition(squares, lo)
+    a = math.sqrt(float(part[lo]))
+    b = math.sqrt(float(part[lo + 1:].min())) if lo + 1 < squares.size else a
     return a + (b - a) * (pos - lo)
 
 

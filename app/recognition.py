@@ -11,6 +11,7 @@ Coordinates are image pixels of the frame the mask belongs to.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -60,27 +61,32 @@ def find_blobs(mask: np.ndarray, min_blob_px: int = 1, max_blobs: int | None = N
     exact for rectangles and within a few percent for round blobs.
     """
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    n = len(contours)
-    areas = np.empty(n)
-    cents = np.empty((n, 2))
-    boxes = np.empty((n, 4), np.int64)
+    # A few contours per frame is the usual case: plain Python on lists, one array each at the end.
+    kept: list[int] = []
+    areas: list[float] = []
+    cents: list[tuple[float, float]] = []
+    boxes: list[Sequence[int]] = []  # x, y, w, h px
     for i, c in enumerate(contours):
         m = cv2.moments(c)
-        areas[i] = m["m00"] + cv2.arcLength(c, True) / 2 + 1
+        area = m["m00"] + cv2.arcLength(c, True) / 2 + 1
+        if area < min_blob_px:
+            continue
+        kept.append(i)
+        areas.append(area)
         if m["m00"] > 0:
-            cents[i] = m["m10"] / m["m00"], m["m01"] / m["m00"]
+            cents.append((m["m10"] / m["m00"], m["m01"] / m["m00"]))
         else:  # a line or a single pixel
-            cents[i] = c.reshape(-1, 2).mean(axis=0)
-        boxes[i] = cv2.boundingRect(c)
-    keep = np.flatnonzero(areas >= min_blob_px)
-    if max_blobs is not None and len(keep) > max_blobs:
-        keep = np.sort(keep[np.argsort(areas[keep])[::-1][:max_blobs]])
-    return Blobs(
-        areas=areas[keep],
-        centroids=cents[keep],
-        boxes=boxes[keep],
-        contours=tuple(contours[int(i)] for i in keep),
-    )
+            mx, my = c.reshape(-1, 2).mean(axis=0).tolist()
+            cents.append((mx, my))
+        boxes.append(cv2.boundingRect(c))
+    area_arr = np.array(areas, float)
+    cent_arr = np.array(cents, float).reshape(-1, 2)
+    box_arr = np.array(boxes, np.int64).reshape(-1, 4)
+    if max_blobs is not None and len(kept) > max_blobs:
+        keep = np.sort(np.argsort(area_arr)[::-1][:max_blobs])
+        area_arr, cent_arr, box_arr = area_arr[keep], cent_arr[keep], box_arr[keep]
+        kept = [kept[int(j)] for j in keep]
+    return Blobs(areas=area_arr, centroids=cent_arr, boxes=box_arr, contours=tuple(contours[i] for i in kept))
 
 
 def box_gaps(boxes: np.ndarray) -> np.ndarray:
