@@ -38,6 +38,16 @@ _NO_POINTS = np.empty((0, 2), np.float32)
 # 25 px pan of the tests' texture 0.89, Halmstad frame pairs 0.81-1.0, blank sky with sensor
 # noise 0.6 at zero shift (harmless: blank sky registers trivially), a broken frame pair -0.01.
 MIN_PHASE_RESPONSE = 0.1
+# The difference image may be moved into the previous frame's pixels by whole-pixel shifts of
+# TILES x TILES tiles when every tile corner lands within SHIFT_TOLERANCE_PX of where the
+# homography puts it (px, per axis, including the shift's own rounding, so that any pure
+# translation qualifies; the nearest-neighbour warp it stands in for is off by up to 0.5).
+# Measured share of frame pairs that qualify: the bench's synthetic flight 95 %, the Halmstad
+# clips 1-100 % per clip (mean 59 % over the airplane/bird/helicopter clips, 67 % over all);
+# the group's recall/precision moved by less than the run-to-run chaos of the tracker
+# (0.807/0.830 -> 0.809/0.825; 0.6, 1.0, 1.25 px gave 0.809/0.825, 0.808/0.818, 0.810/0.822).
+TILES = 4
+SHIFT_TOLERANCE_PX = 0.75
 
 
 def border_windows(width: int, height: int, size: int, count: int) -> list[tuple[int, int, int, int]]:
@@ -351,7 +361,8 @@ class MotionDetector:
         Each frame is warped once: |I_{t+1} - W(I_t)| is computed in t+1's pixels, kept as
         next step's "previous" difference, and brought back into t's pixels for this step
         by a nearest-neighbour warp of the difference image (a third of a bilinear warp of
-        the frame, and the median filter follows anyway).
+        the frame, and the median filter follows anyway), or, when the motion is close
+        enough to a translation, by whole-pixel shifts of its tiles (:func:`_shift_tiles`).
         """
         cur = self._cur
         if cur is None:
@@ -361,10 +372,12 @@ class MotionDetector:
         next_diff = None
         if h_cur_next is not None:
             self._diff_cur = _compensated_diff(cur, nxt, h_cur_next)
-            next_diff = cv2.warpPerspective(
-                self._diff_cur, h_cur_next, (cur.shape[1], cur.shape[0]),
-                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0,
-            )
+            next_diff = _shift_tiles(self._diff_cur, h_cur_next)
+            if next_diff is None:  # the frame turned or zoomed too much for tiles to shift
+                next_diff = cv2.warpPerspective(
+                    self._diff_cur, h_cur_next, (cur.shape[1], cur.shape[0]),
+                    flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0,
+                )
         if not self._has_prev:
             return None, "warmup"  # the first frame has no previous frame
         if prev_diff is None or next_diff is None:
@@ -404,6 +417,48 @@ def _compensated_diff(src: np.ndarray, dst: np.ndarray, h: np.ndarray) -> np.nda
     cv2.warpPerspective(src, h, (dst.shape[1], dst.shape[0]), dst=warped, flags=cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_TRANSPARENT)
     return cv2.absdiff(dst, warped)
+
+
+def _shift_tiles(diff: np.ndarray, h: np.ndarray) -> np.ndarray | None:
+    """``diff`` (in t+1's pixels) brought into t's pixels by moving each of ``TILES`` x
+    ``TILES`` tiles by one whole-pixel shift; ``h`` maps t px -> t+1 px. None when at some
+    tile corner the shift misses ``h`` by more than ``SHIFT_TOLERANCE_PX`` (rotation, zoom):
+    then the caller warps.
+
+    Only the difference image is moved this way, never a frame: the background was registered
+    by the bilinear warp before differencing, so the tolerance only blurs where a moving blob
+    is placed, as the nearest-neighbour warp does by up to half a pixel. In the pipeline it
+    costs about a third of that warp (the bench's flight: 4-5 % of a frame's time saved,
+    paired runs); plain Python, as numpy's call overhead on a 5 x 5 grid ate the saving.
+    """
+    height, width = diff.shape
+    (a, b, c), (d, e, f), (g, k, m) = h.tolist()
+    xs = [width * j // TILES for j in range(TILES + 1)]
+    ys = [height * i // TILES for i in range(TILES + 1)]
+    moves = []  # per grid corner: where h moves it, relative to itself (px)
+    for y in ys:
+        row = []
+        for x in xs:
+            w = g * x + k * y + m
+            row.append(((a * x + b * y + c) / w - x, (d * x + e * y + f) / w - y))
+        moves.append(row)
+    shifts = []
+    tol = SHIFT_TOLERANCE_PX
+    for i in range(TILES):
+        for j in range(TILES):
+            corners = (moves[i][j], moves[i][j + 1], moves[i + 1][j], moves[i + 1][j + 1])
+            sx = round(sum(u for u, _ in corners) / 4)
+            sy = round(sum(v for _, v in corners) / 4)
+            if any(abs(u - sx) > tol or abs(v - sy) > tol for u, v in corners):
+                return None
+            shifts.append((i, j, sx, sy))
+    out = np.zeros_like(diff)  # what comes from outside t+1's frame: no difference
+    for i, j, sx, sy in shifts:
+        x0, x1 = max(xs[j], -sx), min(xs[j + 1], width - sx)
+        y0, y1 = max(ys[i], -sy), min(ys[i + 1], height - sy)
+        if x1 > x0 and y1 > y0:
+            out[y0:y1, x0:x1] = diff[y0 + sy:y1 + sy, x0 + sx:x1 + sx]
+    return out
 
 
 def _global_shift(src: np.ndarray, dst: np.ndarray, scale: int = 4) -> np.ndarray | None:

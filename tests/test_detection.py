@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from app.config import DetectionConfig
-from app.detection import MotionDetector, border_windows
+from app.detection import SHIFT_TOLERANCE_PX, MotionDetector, _shift_tiles, border_windows
 from app.errors import SourceError
 from tests.conftest import textured
 
@@ -199,3 +199,46 @@ def test_frames_skipped_by_a_busy_perception_thread_are_registered_with_their_ti
         assert bad == 0, errors
     else:
         assert bad >= 3  # without the times the start is off by a whole frame's motion
+
+
+def _dots(shape: tuple[int, int], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A difference image of isolated bright pixels, and their (x, y) positions."""
+    rng = np.random.default_rng(seed)
+    pts = np.stack([rng.integers(10, shape[1] - 10, 300), rng.integers(10, shape[0] - 10, 300)], 1)
+    img = np.zeros(shape, np.uint8)
+    img[pts[:, 1], pts[:, 0]] = 200
+    return img, pts
+
+
+def test_tile_shifts_move_the_difference_as_the_nearest_neighbour_warp_does() -> None:
+    """A pure translation (whole or fractional): the tiles give exactly the warp's image."""
+    diff = textured(480, 640, seed=5)
+    for tx, ty in ((3.0, -2.0), (-7.3, 4.6), (0.2, 0.49), (30.0, 12.0)):
+        h = np.array([[1, 0, tx], [0, 1, ty], [0, 0, 1]], float)  # frame t px -> t+1 px
+        ref = cv2.warpPerspective(diff, h, (640, 480), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                  borderValue=0)
+        got = _shift_tiles(diff, h)
+        assert got is not None
+        assert np.array_equal(got, ref), (tx, ty)
+
+
+def test_tile_shifts_place_every_pixel_within_the_tolerance_or_decline() -> None:
+    """A slight turn and zoom: every dot lands within SHIFT_TOLERANCE_PX (+ the dot's own
+    rounding) of where the homography puts it; a turn of 1 degree is declined."""
+    shape = (480, 640)
+    diff_next, pts_next = _dots(shape, seed=3)  # dots in t+1's pixels
+    a = np.deg2rad(0.05)
+    h = np.array([[1.0005 * np.cos(a), -np.sin(a), 2.4], [np.sin(a), 1.0005 * np.cos(a), -1.2], [0, 0, 1]])
+    got = _shift_tiles(diff_next, h)
+    assert got is not None
+    ys, xs = np.nonzero(got)
+    assert len(xs) > 250  # the dots near the border may leave the frame
+    # where each found dot truly belongs in t: the inverse homography of its t+1 position
+    true_t = cv2.perspectiveTransform(pts_next.reshape(-1, 1, 2).astype(float), np.linalg.inv(h))
+    true_t = true_t.reshape(-1, 2)
+    for x, y in zip(xs, ys, strict=True):
+        err = np.abs(true_t - (x, y)).max(axis=1).min()
+        assert err <= SHIFT_TOLERANCE_PX + 0.5, (x, y, err)
+    turn = np.deg2rad(1.0)
+    h_turn = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
+    assert _shift_tiles(diff_next, h_turn) is None
