@@ -251,7 +251,7 @@ class MotionDetector:
                 np.concatenate([flow[i][0] for i in voting]), np.concatenate([flow[i][1] for i in voting]),
                 cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500,
             )
-            inliers = int(inl.sum()) if inl is not None else 0
+            inliers = cv2.countNonZero(inl) if inl is not None else 0
             if h is None or inliers < self.cfg.min_inliers or not _plausible(h):
                 h = None
         elif self._featureless_border([i in voting for i in range(n_windows)]):
@@ -269,8 +269,10 @@ class MotionDetector:
         kept = []
         for (x0, y0, x1, y1), (_, p1) in zip(self._windows, flow, strict=True):
             if len(p1):
-                x, y = p1[:, 0], p1[:, 1]
-                p1 = p1[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
+                (lo_x, lo_y), (hi_x, hi_y) = p1.min(axis=0).tolist(), p1.max(axis=0).tolist()
+                if lo_x < x0 or lo_y < y0 or hi_x >= x1 or hi_y >= y1:  # some left: drop those
+                    x, y = p1[:, 0], p1[:, 1]
+                    p1 = p1[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
             kept.append(p1)
         return h, inliers, kept
 
@@ -315,8 +317,13 @@ class MotionDetector:
             if q1 is None:
                 out.append((_NO_POINTS, _NO_POINTS))
                 continue
-            ok = status.ravel() == 1
-            p0, p1 = q0.reshape(-1, 2)[ok] + origin, q1.reshape(-1, 2)[ok] + origin
+            q1 = q1.reshape(-1, 2)
+            if cv2.countNonZero(status) == len(pts):  # the usual case: LK followed them all
+                # (pts - origin + origin is pts exactly: the origin is a whole number <= the points)
+                p0, p1 = pts, q1 + origin
+            else:
+                ok = status.ravel() == 1
+                p0, p1 = pts[ok], q1[ok] + origin
             out.append((p0, p1))
             if self.cfg.lk_predict and len(p0):
                 moves = np.sort(p1 - p0, axis=0)  # the median by sorting: np.median costs 10x here
@@ -475,8 +482,9 @@ def _global_shift(src: np.ndarray, dst: np.ndarray, scale: int = 4) -> np.ndarra
 
 def _plausible(h: np.ndarray) -> bool:
     """Reject degenerate fits: consecutive frames differ by a small motion."""
-    det = float(np.linalg.det(h[:2, :2]))
-    return 0.5 < det < 2.0 and abs(h[2, 0]) < 1e-2 and abs(h[2, 1]) < 1e-2
+    (a, b, _), (c, d, _), (p, q, _) = h.tolist()
+    det = a * d - b * c
+    return 0.5 < det < 2.0 and abs(p) < 1e-2 and abs(q) < 1e-2
 
 
 def _grey_histogram(gray: np.ndarray) -> np.ndarray:
