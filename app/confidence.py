@@ -60,11 +60,13 @@ class _Evidence:
     seen: bool = field(default=False)  # updated in the current frame
 
 
-def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.ndarray,
-                 ring_px: int) -> tuple[float, float] | None:
+def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int],
+                 inner: np.ndarray | tuple[np.ndarray, ...], ring_px: int) -> tuple[float, float] | None:
     """75th percentile of the gradient magnitude and standard deviation of grey in a
-    ``ring_px`` band around ``box`` (x, y, w, h px), outside the ``inner`` mask (h, w of the
-    box, non-zero = the object's pixels). None if the band is empty (box off the frame)."""
+    ``ring_px`` band around ``box`` (x, y, w, h px), outside the object's pixels ``inner``:
+    a mask over the box (h, w; non-zero = the object) or the object's outer contours (image
+    px, as a Cluster holds them; drawn straight into the band, which saves a mask). None if
+    the band is empty (box off the frame)."""
     height, width = grey.shape
     x, y, w, h = box
     x0, y0 = max(0, x - ring_px), max(0, y - ring_px)
@@ -81,7 +83,9 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], inner: np.nda
     # the object's pixels, clipped to the band's rectangle
     ix0, iy0 = max(x, x0), max(y, y0)
     ix1, iy1 = min(x + w, x1), min(y + h, y1)
-    if ix1 > ix0 and iy1 > iy0:
+    if isinstance(inner, tuple):
+        cv2.drawContours(band, list(inner), -1, 0, cv2.FILLED, offset=(-x0, -y0))
+    elif ix1 > ix0 and iy1 > iy0:
         band[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0][inner[iy0 - y:iy1 - y, ix0 - x:ix1 - x] != 0] = 0
     sel = band != 0
     gxs = gx[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0][sel].astype(np.int32)
@@ -163,11 +167,10 @@ class TrackConfidence:
             ev.seen = True
             ev.matched.append(t.matched)
             if t.matched and t.cluster is not None:
-                inner, _ = t.cluster.pixel_mask()
                 _, _, w, h = t.cluster.box
                 ev.elongation.append(math.log(max(w, h) / max(1, min(w, h))))
                 ev.fill.append(t.cluster.area / max(1, w * h))
-                tex = ring_texture(grey, t.cluster.box, inner, cfg.ring_px)
+                tex = ring_texture(grey, t.cluster.box, t.cluster.contours, cfg.ring_px)
                 if tex is not None:
                     ev.gradient.append(tex[0])
                     ev.std.append(tex[1])

@@ -15,6 +15,7 @@ own motion does not read as the object's (``predict_with_homography``).
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -149,15 +150,24 @@ class Tracker:
     ) -> list[int]:
         if not tracks or not free:
             return free
-        pred = np.array([t.xy for t in tracks])
-        pts = np.array([(clusters[j].x, clusters[j].y) for j in free])
-        dist = np.linalg.norm(pred[:, None, :] - pts[None, :, :], axis=2)
         gate = self.cfg.dist_px
-        rows, cols = linear_sum_assignment(np.where(dist < gate, dist, 1e9))
+        pairs: list[tuple[int, int]]
+        if len(tracks) == 1 or len(free) == 1:
+            # One track or one cluster (the usual case): the assignment is the nearest pair.
+            # Plain Python, the same distances as numpy's (the same IEEE operations).
+            dist_list = [[math.sqrt((tx - clusters[j].x) ** 2 + (ty - clusters[j].y) ** 2) for j in free]
+                         for tx, ty in (t.xy for t in tracks)]
+            best = min(((d, r, c) for r, row in enumerate(dist_list) for c, d in enumerate(row)),
+                       key=lambda e: e[0])
+            pairs = [(best[1], best[2])] if best[0] < gate else []
+        else:
+            pred = np.array([t.xy for t in tracks])
+            pts = np.array([(clusters[j].x, clusters[j].y) for j in free])
+            dist = np.linalg.norm(pred[:, None, :] - pts[None, :, :], axis=2)
+            rows, cols = linear_sum_assignment(np.where(dist < gate, dist, 1e9))
+            pairs = [(r, c) for r, c in zip(rows.tolist(), cols.tolist(), strict=True) if dist[r, c] < gate]
         taken: set[int] = set()
-        for r, c in zip(rows, cols, strict=True):
-            if dist[r, c] >= gate:
-                continue
+        for r, c in pairs:
             t, cl = tracks[r], clusters[free[c]]
             t.kf.update(np.array([[cl.x], [cl.y]]))
             t.cluster = cl

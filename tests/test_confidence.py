@@ -67,6 +67,9 @@ def test_ring_texture_is_the_same_wherever_the_image_lies_in_memory() -> None:
         moved = raw[offset:].reshape(grey.shape)
         moved[:] = grey
         assert ring_texture(moved, (61, 47, 23, 17), inner, 10) == ref, offset
+    # the object given by its contours (as a Cluster holds them) gives the same
+    contour = np.array([[[65, 50]], [[80, 50]], [[80, 60]], [[65, 60]]], np.int32)  # inner[3:14, 4:20]
+    assert ring_texture(grey, (61, 47, 23, 17), (contour,), 10) == ref
     # and it is the 75th percentile of the gradient magnitude in the band (box + 10 px, minus
     # the object's pixels) and the grey standard deviation there
     band = np.ones((37, 43), bool)  # rows 37-73, columns 51-93
