@@ -92,6 +92,10 @@ def test_bench_command_reports_both_variants_as_json() -> None:
     ratio = r["baseline_median_ms_per_frame"] / r["median_ms_per_frame"]
     assert r["speedup_vs_full_frame"] == round(ratio, 2)
     assert len(r["repeat_medians_ms"]) == 2
+    # the variants take turns every 30 frames; the spread of the ratio within the turns
+    assert r["turn_frames"] == 30
+    p10, p50, p90 = r["turn_speedup_p10_p50_p90"]
+    assert 0 < p10 <= p50 <= p90
     bad = subprocess.run([sys.executable, "-m", "app.cli", "bench", "--repeats", "0"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--repeats 0: must be at least 1" in bad.stderr
