@@ -447,6 +447,8 @@ def _shift_tiles(diff: np.ndarray, h: np.ndarray) -> np.ndarray | None:
         row = []
         for x in xs:
             w = g * x + k * y + m
+            if w < 1e-6:  # the corner goes through the horizon: no shift comes near (and no /0)
+                return None
             row.append(((a * x + b * y + c) / w - x, (d * x + e * y + f) / w - y))
         moves.append(row)
     shifts = []

@@ -242,3 +242,5 @@ def test_tile_shifts_place_every_pixel_within_the_tolerance_or_decline() -> None
     turn = np.deg2rad(1.0)
     h_turn = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
     assert _shift_tiles(diff_next, h_turn) is None
+    # a homography that sends a grid corner through the horizon (w = 0 at x = 320, y = 0)
+    assert _shift_tiles(diff_next, np.array([[1, 0, 0], [0, 1, 0], [-1 / 320, 0, 1.0]])) is None
