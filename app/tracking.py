@@ -154,8 +154,9 @@ class Tracker:
         pairs: list[tuple[int, int]]
         if len(tracks) == 1 or len(free) == 1:
             # One track or one cluster (the usual case): the assignment is the nearest pair.
-            # Plain Python, the same distances as numpy's (the same IEEE operations).
-            dist_list = [[math.sqrt((tx - clusters[j].x) ** 2 + (ty - clusters[j].y) ** 2) for j in free]
+            # Plain Python, the same distances as numpy's norm (the same IEEE operations:
+            # products, their sum, the root; ** 2 would go through pow()).
+            dist_list = [[_hypot(tx - clusters[j].x, ty - clusters[j].y) for j in free]
                          for tx, ty in (t.xy for t in tracks)]
             best = min(((d, r, c) for r, row in enumerate(dist_list) for c, d in enumerate(row)),
                        key=lambda e: e[0])
@@ -220,6 +221,10 @@ class Tracker:
             last_seen_s=t.last_seen_s, hits=t.hits,
             cluster=t.cluster, trail=tuple(t.trail), reported=t.cluster is not None,
         )
+
+
+def _hypot(dx: float, dy: float) -> float:
+    return math.sqrt(dx * dx + dy * dy)
 
 
 def _box(t: _Track) -> tuple[float, float, float, float]:
