@@ -43,7 +43,7 @@ MIN_PHASE_RESPONSE = 0.1
 # homography puts it (px, per axis, including the shift's own rounding, so that any pure
 # translation qualifies; the nearest-neighbour warp it stands in for is off by up to 0.5).
 # Measured share of frame pairs that qualify: the bench's synthetic flight 95 %, the Halmstad
-# clips 1-100 % per clip (mean 59 % over the airplane/bird/helicopter clips, 67 % over all);
+# clips 1-100 % per clip (mean 59 % over the airplane/bird/helicopter clips, 67 % over all 32);
 # the group's recall/precision moved by less than the run-to-run chaos of the tracker
 # (0.807/0.830 -> 0.809/0.825; 0.6, 1.0, 1.25 px gave 0.809/0.825, 0.808/0.818, 0.810/0.822).
 TILES = 4
