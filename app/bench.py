@@ -33,15 +33,6 @@ def _frames(n: int, seed: int) -> list[Frame]:
     return [f for f, _ in render(scene)]
 
 
-def time_variant(frames: list[Frame], cfg: Config, full_frame: bool, repeats: int) -> dict[str, np.ndarray]:
-    out: dict[str, list[float]] = {k: [] for k in STAGES}
-    for _ in range(repeats):
-        p = Perception(cfg.perception, full_frame_features=full_frame)
-        for f in frames:
-            _record(p.push(f), out)
-    return {k: np.asarray(v) for k, v in out.items()}
-
-
 def time_interleaved(frames: list[Frame], cfg: Config, chunk: int = CHUNK_FRAMES
                      ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], list[float]]:
     """Both variants over the clip, taking turns every ``chunk`` frames (each keeps its own
@@ -115,8 +106,7 @@ def warm_up(clip: list[Frame], cfg: Config, seconds: float) -> None:
     """
     t_end = time.perf_counter() + seconds
     while True:
-        time_variant(clip, cfg, False, 1)
-        time_variant(clip, cfg, True, 1)
+        time_interleaved(clip, cfg)
         if time.perf_counter() >= t_end:
             return
 

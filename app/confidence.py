@@ -60,13 +60,12 @@ class _Evidence:
     seen: bool = field(default=False)  # updated in the current frame
 
 
-def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int],
-                 inner: np.ndarray | tuple[np.ndarray, ...], ring_px: int) -> tuple[float, float] | None:
+def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], contours: tuple[np.ndarray, ...],
+                 ring_px: int) -> tuple[float, float] | None:
     """75th percentile of the gradient magnitude and standard deviation of grey in a
-    ``ring_px`` band around ``box`` (x, y, w, h px), outside the object's pixels ``inner``:
-    a mask over the box (h, w; non-zero = the object) or the object's outer contours (image
-    px, as a Cluster holds them; drawn straight into the band, which saves a mask). None if
-    the band is empty (box off the frame)."""
+    ``ring_px`` band around ``box`` (x, y, w, h px), outside the object's pixels: the inside
+    of its outer ``contours`` (image px, as a Cluster holds them). None if the band is empty
+    (box off the frame)."""
     height, width = grey.shape
     x, y, w, h = box
     x0, y0 = max(0, x - ring_px), max(0, y - ring_px)
@@ -80,13 +79,7 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int],
     # only the extra pixel sees, except at the frame's own edges (where Sobel reflects too).
     gx, gy = cv2.spatialGradient(np.ascontiguousarray(grey[ey0:ey1, ex0:ex1]), ksize=3)
     band = np.full((y1 - y0, x1 - x0), 255, np.uint8)
-    # the object's pixels, clipped to the band's rectangle
-    ix0, iy0 = max(x, x0), max(y, y0)
-    ix1, iy1 = min(x + w, x1), min(y + h, y1)
-    if isinstance(inner, tuple):
-        cv2.drawContours(band, list(inner), -1, 0, cv2.FILLED, offset=(-x0, -y0))
-    elif ix1 > ix0 and iy1 > iy0:
-        band[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0][inner[iy0 - y:iy1 - y, ix0 - x:ix1 - x] != 0] = 0
+    cv2.drawContours(band, list(contours), -1, 0, cv2.FILLED, offset=(-x0, -y0))  # clipped to the band
     sel = band != 0
     gxs = gx[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0][sel].astype(np.int32)
     gys = gy[y0 - ey0:y1 - ey0, x0 - ex0:x1 - ex0][sel].astype(np.int32)

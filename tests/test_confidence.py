@@ -45,31 +45,30 @@ def test_ring_texture_sees_sky_as_plain_and_trees_as_textured() -> None:
     trees = textured(200, 200, seed=4)
     for img in (sky, trees):
         img[96:104, 96:104] = 40  # the object itself: excluded from the ring
-    inner = np.full((8, 8), 255, np.uint8)
+    inner = (np.array([[[96, 96]], [[103, 96]], [[103, 103]], [[96, 103]]], np.int32),)  # the 8x8 square
     g_sky, s_sky = ring_texture(sky, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
     g_tree, s_tree = ring_texture(trees, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
     assert g_sky == 0.0 and s_sky == 0.0  # a dark object on plain sky leaves no texture in its ring
     assert g_tree > 50 and s_tree > 10
     # off the frame: no band to measure
-    assert ring_texture(sky, (-40, -40, 8, 8), inner, 10) is None
+    off = (np.array([[[-40, -40]], [[-33, -40]], [[-33, -33]], [[-40, -33]]], np.int32),)
+    assert ring_texture(sky, (-40, -40, 8, 8), off, 10) is None
 
 
 def test_ring_texture_is_the_same_wherever_the_image_lies_in_memory() -> None:
     """A replay must repeat a flight exactly: the texture of the same pixels may not depend on
     the buffer's address (cv2.magnitude's vector and scalar paths round differently)."""
     grey = textured(120, 160, seed=7)
-    inner = np.zeros((17, 23), np.uint8)
+    inner = np.zeros((17, 23), np.uint8)  # the object's pixels over its box
     inner[3:14, 4:20] = 255
-    ref = ring_texture(grey, (61, 47, 23, 17), inner, 10)
+    contour = np.array([[[65, 50]], [[80, 50]], [[80, 60]], [[65, 60]]], np.int32)  # its outline in px
+    ref = ring_texture(grey, (61, 47, 23, 17), (contour,), 10)
     assert ref is not None
     for offset in range(1, 64):
         raw = np.zeros(grey.size + offset, np.uint8)
         moved = raw[offset:].reshape(grey.shape)
         moved[:] = grey
-        assert ring_texture(moved, (61, 47, 23, 17), inner, 10) == ref, offset
-    # the object given by its contours (as a Cluster holds them) gives the same
-    contour = np.array([[[65, 50]], [[80, 50]], [[80, 60]], [[65, 60]]], np.int32)  # inner[3:14, 4:20]
-    assert ring_texture(grey, (61, 47, 23, 17), (contour,), 10) == ref
+        assert ring_texture(moved, (61, 47, 23, 17), (contour,), 10) == ref, offset
     # and it is the 75th percentile of the gradient magnitude in the band (box + 10 px, minus
     # the object's pixels) and the grey standard deviation there
     band = np.ones((37, 43), bool)  # rows 37-73, columns 51-93
