@@ -6,7 +6,7 @@ moves: both leave a blob that persists. What can tell them apart is *where* the 
 plain surroundings (sky: ring gradient 75th percentile ~4 grey levels/px, median) while false
 tracks sit in texture (trees, ground: ~17), and objects move steadily while clutter jitters.
 
-Each confirmed track gets six causal features, updated every frame it is reported:
+Each confirmed track gets nine causal features, updated every frame it is reported:
 
 ============== ==========================================================================
 matched         1 if a cluster was matched in this frame, 0 while coasting
@@ -22,6 +22,10 @@ elongation      median over the last ``history_frames`` matched frames of log(lo
                 short side) of the cluster's box (flyers are compact; parallax edges, poles
                 and trunks are long)
 fill            the same median of the cluster's blob area / box area
+bottom_edge     how long the ``ring_px`` band below the cluster's box has crossed the
+                frame's bottom edge: the newest matched frames in a row that it did, over
+                ``edge_frames``, at most 1 (ground, masts and tree tops that the bottom edge
+                cuts off stay there; an object passing through it is 0 once above it)
 ============== ==========================================================================
 
 and a confidence ``sigmoid(bias + sum(weight * feature))``. The weights are fitted by
@@ -45,7 +49,7 @@ from app.config import ConfidenceConfig
 from app.tracking import TrackReport
 
 FEATURES = ("matched", "log_hits", "ring_gradient", "ring_std", "straightness", "match_fraction",
-            "elongation", "fill")
+            "elongation", "fill", "bottom_edge")
 
 
 @dataclass
@@ -57,6 +61,7 @@ class _Evidence:
     elongation: deque[float]
     fill: deque[float]
     matched: deque[bool]
+    edge_run: int = field(default=0)  # newest matched frames in a row with the ring across the bottom edge
     seen: bool = field(default=False)  # updated in the current frame
 
 
@@ -147,6 +152,7 @@ class TrackConfidence:
         """The tracks of the frame ``grey`` with ``confidence``, ``features`` and
         ``reported`` filled in. Call once per frame, with every confirmed track."""
         cfg = self.cfg
+        height = grey.shape[0]
         for old in self._evidence.values():
             old.seen = False
         out = []
@@ -160,7 +166,8 @@ class TrackConfidence:
             ev.seen = True
             ev.matched.append(t.matched)
             if t.matched and t.cluster is not None:
-                _, _, w, h = t.cluster.box
+                _, y, w, h = t.cluster.box
+                ev.edge_run = ev.edge_run + 1 if y + h + cfg.ring_px > height else 0
                 ev.elongation.append(math.log(max(w, h) / max(1, min(w, h))))
                 ev.fill.append(t.cluster.area / max(1, w * h))
                 tex = ring_texture(grey, t.cluster.box, t.cluster.contours, cfg.ring_px)
@@ -176,6 +183,7 @@ class TrackConfidence:
                 sum(ev.matched) / len(ev.matched),
                 median(ev.elongation) if ev.elongation else 0.0,
                 median(ev.fill) if ev.fill else 1.0,
+                min(1.0, ev.edge_run / cfg.edge_frames),
             )
             conf = logistic(cfg.bias, self.weights, features)
             reported = conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched

@@ -1,7 +1,7 @@
 """Fitting the track confidence (app/confidence.py) on clips with ground truth.
 
 ``midair fit-confidence DATA``: every clip is replayed once; each confirmed track in each
-frame becomes one example — its six features, and whether its centre lies within the
+frame becomes one example — its features, and whether its centre lies within the
 evaluation gate of a labelled object (the matching rule of app/evaluate.py). A logistic
 regression (Newton's method, a small L2 penalty, no extra dependency) is fitted on all of
 them. Because the confidence only decides what is *reported* and never feeds back into the

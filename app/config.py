@@ -169,7 +169,7 @@ class TrackingConfig:
 class ConfidenceConfig:
     """Track confidence — object or moving clutter (beyond the paper; app/confidence.py).
     Weights: `midair fit-confidence ../shared/data --min-confidence 0.35` (all 32 Halmstad
-    clips, 27 998 track reports, with the detection/tracking defaults above)."""
+    clips, 28 829 track reports, with the detection/tracking defaults above)."""
 
     min_confidence: float = param(
         0.35, "a confirmed track is reported as an object in the frames its confidence reaches "
@@ -183,17 +183,25 @@ class ConfidenceConfig:
         10, "straightness is measured over this many of the latest trail points, frames", ge=3
     )
     match_frames: int = param(10, "match fraction over this many of the latest frames", ge=1)
-    bias: float = param(-1.6614, "logistic regression intercept")
-    w_matched: float = param(0.9403, "weight of: matched in this frame (0/1)")
-    w_log_hits: float = param(0.7362, "weight of: log(1 + frames matched)")
-    w_ring_gradient: float = param(
-        -0.9364, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+    edge_frames: int = param(
+        5, "the bottom-edge feature reaches 1 after this many matched frames in a row at the bottom edge",
+        ge=1,
     )
-    w_ring_std: float = param(-0.7128, "weight of: log(1 + median grey std in the ring, grey levels)")
-    w_straightness: float = param(0.9019, "weight of: net displacement / path length (0-1)")
-    w_match_fraction: float = param(3.4811, "weight of: fraction of recent frames matched (0-1)")
-    w_elongation: float = param(-2.6018, "weight of: median log(long / short side) of the cluster box")
-    w_fill: float = param(-0.1603, "weight of: median blob area / box area of the cluster (0-1)")
+    bias: float = param(-0.5664, "logistic regression intercept")
+    w_matched: float = param(0.9415, "weight of: matched in this frame (0/1)")
+    w_log_hits: float = param(0.7052, "weight of: log(1 + frames matched)")
+    w_ring_gradient: float = param(
+        -1.1965, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+    )
+    w_ring_std: float = param(-0.5174, "weight of: log(1 + median grey std in the ring, grey levels)")
+    w_straightness: float = param(0.6517, "weight of: net displacement / path length (0-1)")
+    w_match_fraction: float = param(3.6073, "weight of: fraction of recent frames matched (0-1)")
+    w_elongation: float = param(-2.1498, "weight of: median log(long / short side) of the cluster box")
+    w_fill: float = param(-0.9872, "weight of: median blob area / box area of the cluster (0-1)")
+    w_bottom_edge: float = param(
+        -7.5980, "weight of: matched frames in a row with the ring across the bottom edge / edge_frames "
+        "(0-1)",
+    )
 
 
 @dataclass(frozen=True)

@@ -122,6 +122,44 @@ def test_a_confident_track_is_reported_while_coasting_and_forgotten_when_gone() 
     assert scorer._evidence == {}
 
 
+def test_bottom_edge_feature_grows_while_the_ring_stays_across_the_bottom_edge() -> None:
+    """A mast cut off by the bottom edge has its ring across it every frame; an object that
+    passed through the bottom edge had it in its first two frames only; one in mid-sky never,
+    and neither one leaving through a side (flyers cross the sides: only the bottom counts)."""
+    cfg = _cfg(min_confidence=0.5, bias=2.0, w_bottom_edge=-5.0, edge_frames=5)
+    sky = np.full((480, 640), 170, np.uint8)
+    scorer = TrackConfidence(cfg)
+    i_edge = FEATURES.index("bottom_edge")
+    trail: tuple[tuple[float, float], ...] = ()
+    seen: dict[int, list[float]] = {1: [], 2: [], 3: [], 4: []}
+    for i in range(8):
+        trail = (*trail, (300.0, 470.0))
+        out = scorer(sky, [
+            # box (296, 468, 8, 8): its 10 px ring reaches y = 486 > 480, the frame's bottom
+            _report(1, _square(296, 468), trail),
+            _report(2, _square(296, 200), trail),
+            # y = 470 - 4i: the ring crosses y = 480 while y + 8 + 10 > 480 (frames 0 and 1)
+            _report(3, _square(100, 470 - 4 * i), trail),
+            # leaving through the right side: x = 630 + i
+            _report(4, _square(630 + i, 200), trail),
+        ])
+        for t in out:
+            seen[t.track_id].append(t.features[i_edge])
+    assert seen[1] == [0.2, 0.4, 0.6, 0.8, 1.0, 1.0, 1.0, 1.0]
+    assert seen[2] == seen[4] == [0.0] * 8
+    assert seen[3] == [0.2, 0.4] + [0.0] * 6
+    mast, sky_obj, entering, leaving = out
+    assert not mast.reported and sky_obj.reported and entering.reported and leaving.reported
+    # coasting frames leave it as it was: the evidence is of matched frames only
+    coast = scorer(sky, [_report(1, None, trail)])[0]
+    assert coast.features[i_edge] == 1.0
+    # the ring's own width decides: a box ending ring_px above the bottom is inside
+    flush = scorer(sky, [_report(5, _square(100, 480 - 10 - 8), trail)])[0]
+    assert flush.features[i_edge] == 0.0
+    over = scorer(sky, [_report(6, _square(100, 480 - 10 - 7), trail)])[0]
+    assert over.features[i_edge] == 0.2
+
+
 def test_min_confidence_zero_reports_exactly_the_matched_tracks() -> None:
     scorer = TrackConfidence(_cfg(min_confidence=0.0, bias=5.0))
     sky = np.full((480, 640), 170, np.uint8)
