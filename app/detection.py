@@ -34,6 +34,7 @@ Box = tuple[float, float, float, float]  # x, y, w, h in image px (top-left corn
 # (OpenCV's videostab motion estimator defaults to 1000; 500 is a common lighter setting).
 FULL_FRAME_CORNERS = 500
 _NO_POINTS = np.empty((0, 2), np.float32)
+_NO_WINDOWS = np.empty(0, np.intp)
 # Below this phase-correlation peak the whole-frame shift is not used to start LK. Measured: a
 # 25 px pan of the tests' texture 0.89, Halmstad frame pairs 0.81-1.0, blank sky with sensor
 # noise 0.6 at zero shift (harmless: blank sky registers trivially), a broken frame pair -0.01.
@@ -116,10 +117,8 @@ class MotionDetector:
         self._t_cur: float | None = None
         self._interval_ratio = 1.0  # (t+1 - t) / (t - t-1) in quarters, 0.25-4
         self._hist_cur: np.ndarray | None = None
-        # tracked points in frame t, one (k, 2) float32 array of image px per border window
-        self._win_pts: list[np.ndarray] = [_NO_POINTS] * len(self._windows)
-        # per border window, the median flow t-1 -> t of its points (image px), if it had any
-        self._win_shift: list[np.ndarray | None] = [None] * len(self._windows)
+        self._clear_points()
+        self._clear_shifts()
         # no motion to go on (start, or the last frame failed): the next flow starts from the
         # whole frame's shift instead
         self._lost_motion = True
@@ -136,10 +135,24 @@ class MotionDetector:
         self._crops = [(max(0, x0 - m), max(0, y0 - m), min(w, x1 + m), min(h, y1 + m))
                        for x0, y0, x1, y1 in self._windows]
         self._shape = shape
-        self._origins = [np.array([x0, y0], np.float32) for x0, y0, _, _ in self._crops]
+        # per window: its crop's top-left corner, and its own bounds (image px, float32 like the points)
+        self._origins = np.array([(x0, y0) for x0, y0, _, _ in self._crops], np.float32).reshape(-1, 2)
+        self._bounds = np.array(self._windows, np.float32).reshape(-1, 4)
         self._textureless = np.zeros(len(self._windows), bool)
-        self._win_pts = [_NO_POINTS] * len(self._windows)
-        self._win_shift = [None] * len(self._windows)
+        self._clear_points()
+        self._clear_shifts()
+
+    def _clear_points(self) -> None:
+        # Tracked points in frame t: every border window's in one (N, 2) float32 array of image
+        # px, window after window (the order RANSAC sees them in), and the window of each.
+        self._pts = _NO_POINTS
+        self._wid = _NO_WINDOWS
+        self._counts = [0] * len(self._windows)  # points per window
+
+    def _clear_shifts(self) -> None:
+        # per border window, the median flow t-1 -> t of its points (image px), where it had any
+        self._shift = np.zeros((len(self._windows), 2), np.float32)
+        self._has_shift = [False] * len(self._windows)
 
     # ------------------------------------------------------------------ main step
 
@@ -184,7 +197,7 @@ class MotionDetector:
                 # never changes it, and a replay of the flight record, whose times are rounded
                 # to 1 us, starts LK exactly where the flight did.
                 self._interval_ratio = min(4.0, max(0.25, round(4.0 * now / last) / 4.0))
-        h_cur_next, inliers, next_pts = self._estimate(self._cur, gray, excluded)
+        h_cur_next, inliers = self._estimate(self._cur, gray, excluded)
         t1 = time.perf_counter()
         timings["flow_ms"] = (t1 - t0) * 1e3
 
@@ -202,7 +215,6 @@ class MotionDetector:
         self._cur, self._hist_cur = gray, hist
         self._t_prev, self._t_cur = self._t_cur, t_s
         self._h_prev_cur = h_cur_next
-        self._win_pts = next_pts
         self._reseed(gray)
         return result
 
@@ -225,32 +237,35 @@ class MotionDetector:
                     break
         return out
 
-    def _estimate(
-        self, cur: np.ndarray, nxt: np.ndarray, excluded: set[int]
-    ) -> tuple[np.ndarray | None, int, list[np.ndarray]]:
-        """H_{t,t+1} from LK flow of the tracked points; also each window's surviving points
-        in t+1 (those that stayed inside their own window)."""
+    def _estimate(self, cur: np.ndarray, nxt: np.ndarray, excluded: set[int]
+                  ) -> tuple[np.ndarray | None, int]:
+        """H_{t,t+1} from LK flow of the tracked points, and its RANSAC inliers. Leaves each
+        window with its points that LK followed into t+1 and that stayed inside the window."""
         self.featureless = False
         n_windows = len(self._windows)
-        if sum(len(p) for p in self._win_pts) < 4:
-            if self._featureless_border([len(p) > 0 for p in self._win_pts]):
+        if len(self._pts) < 4:
+            has_points = [k > 0 for k in self._counts]
+            self._clear_points()
+            if self._featureless_border(has_points):
                 self.featureless = True
-                return np.eye(3), 0, [_NO_POINTS] * n_windows
-            return None, 0, [_NO_POINTS] * n_windows
-        flow = self._flow(cur, nxt)
-        voting = [i for i in range(n_windows) if len(flow[i][0]) and i not in excluded]
-        n_vote = sum(len(flow[i][0]) for i in voting)
+                return np.eye(3), 0
+            return None, 0
+        p0, p1, wid, followed = self._flow(cur, nxt)
+        voting = [i for i in range(n_windows) if followed[i] and i not in excluded]
+        n_vote = sum(followed[i] for i in voting)
         if excluded and n_vote < self.cfg.min_inliers:
             # every window is covered: better the object's points than none
-            voting = [i for i in range(n_windows) if len(flow[i][0])]
-            n_vote = sum(len(flow[i][0]) for i in voting)
+            voting = [i for i in range(n_windows) if followed[i]]
+            n_vote = len(p0)
+        if n_vote == len(p0):
+            v0, v1 = p0, p1  # every window votes (the usual case)
+        else:
+            sel = np.isin(wid, voting)
+            v0, v1 = p0[sel], p1[sel]
         h = None
         inliers = 0
         if n_vote >= max(4, self.cfg.min_inliers):
-            h, inl = cv2.findHomography(
-                np.concatenate([flow[i][0] for i in voting]), np.concatenate([flow[i][1] for i in voting]),
-                cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500,
-            )
+            h, inl = cv2.findHomography(v0, v1, cv2.RANSAC, self.cfg.ransac_reproj_px, maxIters=500)
             inliers = cv2.countNonZero(inl) if inl is not None else 0
             if h is None or inliers < self.cfg.min_inliers or not _plausible(h):
                 h = None
@@ -258,77 +273,99 @@ class MotionDetector:
             # Too few points because the border is blank sky, not because the points disagree:
             # a misregistered blank sky differs from itself by nothing, so a translation by
             # the median flow of what points there are (or none) is a safe model.
-            if n_vote >= 3:
-                moves = np.concatenate([flow[i][1] - flow[i][0] for i in voting])
-                shift = np.median(moves, axis=0)
-            else:
-                shift = np.zeros(2)
+            shift = np.median(v1 - v0, axis=0) if n_vote >= 3 else np.zeros(2)
             h = np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]], float)
             self.featureless = True
-        # Keep points that stay inside their own window in frame t+1.
-        kept = []
-        for (x0, y0, x1, y1), (_, p1) in zip(self._windows, flow, strict=True):
-            if len(p1):
-                (lo_x, lo_y), (hi_x, hi_y) = p1.min(axis=0).tolist(), p1.max(axis=0).tolist()
-                if lo_x < x0 or lo_y < y0 or hi_x >= x1 or hi_y >= y1:  # some left: drop those
-                    x, y = p1[:, 0], p1[:, 1]
-                    p1 = p1[(x >= x0) & (x < x1) & (y >= y0) & (y < y1)]
-            kept.append(p1)
-        return h, inliers, kept
+        # Keep the points that stay inside their own window in frame t+1.
+        b = self._bounds[wid]  # (M, 4): x0, y0, x1, y1 of each point's window
+        x, y = p1[:, 0], p1[:, 1]
+        inside = (x >= b[:, 0]) & (y >= b[:, 1]) & (x < b[:, 2]) & (y < b[:, 3])
+        if inside.all():
+            self._pts, self._wid = p1, wid
+        else:
+            self._pts, self._wid = p1[inside], wid[inside]
+        self._counts = np.bincount(self._wid, minlength=n_windows).tolist()
+        return h, inliers
 
-    def _flow(self, cur: np.ndarray, nxt: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-        """LK flow of each window's tracked points, t -> t+1: per window, the points LK
-        could follow, in t and in t+1 (image px; two (k, 2) float32 arrays).
+    def _flow(self, cur: np.ndarray, nxt: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """LK flow of the tracked points, t -> t+1: the points LK could follow, in t and in t+1
+        (image px; two (M, 2) float32 arrays, window after window), the window of each, and
+        how many each window has.
 
         Each window is flowed inside its own crop (window + ``lk_search_px``): building
-        image pyramids of six small crops costs a fraction of two whole frames.
+        image pyramids of six small crops costs a fraction of two whole frames. Everything
+        but the LK calls is done once over all windows' points.
         """
-        out: list[tuple[np.ndarray, np.ndarray]] = []
+        n_windows = len(self._windows)
+        predict = self.cfg.lk_predict
         scale = np.float32(self._interval_ratio)  # the last flow covered a different interval
-        if self.cfg.lk_predict and self._lost_motion:
+        if predict and self._lost_motion:
             # Nothing to predict from, or a prediction that just failed: a coarse phase
             # correlation of the whole frame gives every window its start when the frame
             # moved by more than LK finds from rest (about half its window: at 12 px/frame
             # from rest the homography's error reached 3.4 px p95 on the synthetic flight).
             whole = _global_shift(cur, nxt)
             if whole is not None and float(np.hypot(*whole)) > self.cfg.lk_window_px / 2:
-                self._win_shift = [whole] * len(self._windows)
+                self._shift[:] = whole
+                self._has_shift = [True] * n_windows
                 scale = np.float32(1.0)  # measured on this very pair
-        for i, ((x0, y0, x1, y1), origin, pts) in enumerate(
-                zip(self._crops, self._origins, self._win_pts, strict=True)):
-            shift, self._win_shift[i] = self._win_shift[i], None
-            if not len(pts):
-                out.append((_NO_POINTS, _NO_POINTS))
+        pts, wid = self._pts, self._wid
+        q0 = pts - self._origins[wid]  # crop px
+        # Camera motion changes little from one frame to the next: start LK where the window's
+        # own last flow carries its points, so the pyramid only has to find the change of
+        # motion (a 2-level pyramid then follows pans of 48 px/frame).
+        guess = q0 + self._shift[wid] * scale if predict else q0
+        q1s: list[np.ndarray] = []
+        oks: list[np.ndarray] = []
+        end = 0
+        for i, ((x0, y0, x1, y1), k) in enumerate(zip(self._crops, self._counts, strict=True)):
+            if not k:
                 continue
-            q0 = (pts - origin).reshape(-1, 1, 2)
-            guess: np.ndarray | None
-            if self.cfg.lk_predict and shift is not None:
-                # Camera motion changes little from one frame to the next: start LK where the
-                # window's own last flow carries its points, so the pyramid only has to find
-                # the change of motion (a 2-level pyramid then follows pans of 48 px/frame).
-                guess, flags = q0 + shift * scale, cv2.OPTFLOW_USE_INITIAL_FLOW
+            start, end = end, end + k
+            if predict and self._has_shift[i]:
+                first, flags = guess[start:end].reshape(-1, 1, 2), cv2.OPTFLOW_USE_INITIAL_FLOW
             else:
-                guess, flags = None, 0
+                first, flags = None, 0
             q1, status, _err = cv2.calcOpticalFlowPyrLK(
-                cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0,
-                guess,  # type: ignore[arg-type]  # None (LK starts at the points) is accepted; the stubs say no
+                cur[y0:y1, x0:x1], nxt[y0:y1, x0:x1], q0[start:end].reshape(-1, 1, 2),
+                first,  # type: ignore[arg-type]  # None (LK starts at the points) is accepted; the stubs say no
                 flags=flags, **self._lk_params,
             )
-            if q1 is None:
-                out.append((_NO_POINTS, _NO_POINTS))
+            if q1 is None:  # LK gave up on the whole window: none of its points is followed
+                q1, status = np.zeros((k, 2), np.float32), np.zeros(k, np.uint8)
+            q1s.append(q1.reshape(-1, 2))
+            oks.append(status.reshape(-1))
+        self._has_shift = [False] * n_windows
+        ok = np.concatenate(oks) == 1
+        p1 = np.concatenate(q1s) + self._origins[wid]
+        if ok.all():
+            followed = self._counts
+        else:
+            pts, p1, wid = pts[ok], p1[ok], wid[ok]
+            followed = np.bincount(wid, minlength=n_windows).tolist()
+        # (pts - origin + origin is pts exactly: the origin is a whole number <= the points)
+        if predict and len(pts):
+            self._median_flow(p1 - pts, followed)
+        return pts, p1, wid, followed
+
+    def _median_flow(self, moves: np.ndarray, counts: list[int]) -> None:
+        """Each window's median of ``moves`` per axis (image px; (M, 2), window after window,
+        ``counts[i]`` rows of window i), kept as the start of the next LK. A dozen values a
+        window: sorted in plain Python (np.median costs 10x, and numpy's per-call cost adds up
+        over six windows). Stored as float32, the mean of the two middle values is rounded
+        just as float32 arithmetic rounds it."""
+        rows = moves.tolist()
+        end = 0
+        for i, k in enumerate(counts):
+            if not k:
                 continue
-            q1 = q1.reshape(-1, 2)
-            if cv2.countNonZero(status) == len(pts):  # the usual case: LK followed them all
-                # (pts - origin + origin is pts exactly: the origin is a whole number <= the points)
-                p0, p1 = pts, q1 + origin
-            else:
-                ok = status.ravel() == 1
-                p0, p1 = pts[ok], q1[ok] + origin
-            out.append((p0, p1))
-            if self.cfg.lk_predict and len(p0):
-                moves = np.sort(p1 - p0, axis=0)  # the median by sorting: np.median costs 10x here
-                self._win_shift[i] = (moves[(len(moves) - 1) // 2] + moves[len(moves) // 2]) / 2  # image px
-        return out
+            start, end = end, end + k
+            xs = sorted([r[0] for r in rows[start:end]])
+            ys = sorted([r[1] for r in rows[start:end]])
+            lo, hi = (k - 1) // 2, k // 2
+            self._shift[i] = ((xs[lo] + xs[hi]) / 2, (ys[lo] + ys[hi]) / 2)
+            self._has_shift[i] = True
 
     def _featureless_border(self, has_points: list[bool]) -> bool:
         """True when every window without points is blank (and at least one is)."""
@@ -343,10 +380,13 @@ class MotionDetector:
             pts = cv2.goodFeaturesToTrack(
                 gray, FULL_FRAME_CORNERS, c.feature_quality, c.feature_min_distance_px
             )
-            self._win_pts = [_NO_POINTS if pts is None else pts.reshape(-1, 2).astype(np.float32)]
+            self._pts = _NO_POINTS if pts is None else pts.reshape(-1, 2).astype(np.float32)
+            self._wid = np.zeros(len(self._pts), np.intp)
+            self._counts = [len(self._pts)]
             return
+        fresh: dict[int, np.ndarray] = {}
         for i, (x0, y0, x1, y1) in enumerate(self._windows):
-            if len(self._win_pts[i]) >= c.min_points_per_window:
+            if self._counts[i] >= c.min_points_per_window:
                 continue
             patch = gray[y0:y1, x0:x1]
             self._textureless[i] = float(cv2.cornerMinEigenVal(patch, 3).max()) < c.min_texture
@@ -355,10 +395,18 @@ class MotionDetector:
             found = cv2.goodFeaturesToTrack(
                 patch, c.max_points_per_window, c.feature_quality, c.feature_min_distance_px
             )
-            if found is None:
-                continue
-            # replace the window's thin set with a fresh one
-            self._win_pts[i] = (found.reshape(-1, 2) + np.array([x0, y0], np.float32)).astype(np.float32)
+            if found is not None:
+                # replaces the window's thin set with a fresh one
+                fresh[i] = (found.reshape(-1, 2) + np.array([x0, y0], np.float32)).astype(np.float32)
+        if not fresh:
+            return
+        parts, end = [], 0
+        for i, k in enumerate(self._counts):
+            start, end = end, end + k
+            parts.append(fresh.get(i, self._pts[start:end]))
+        self._counts = [len(p) for p in parts]
+        self._pts = np.concatenate(parts)
+        self._wid = np.repeat(np.arange(len(parts)), self._counts)
 
     # ------------------------------------------------------------------ differencing
 
@@ -451,22 +499,37 @@ def _shift_tiles(diff: np.ndarray, h: np.ndarray) -> np.ndarray | None:
                 return None
             row.append(((a * x + b * y + c) / w - x, (d * x + e * y + f) / w - y))
         moves.append(row)
-    shifts = []
     tol = SHIFT_TOLERANCE_PX
+    # Tiles side by side with the same shift are moved as one run, and tile rows with the same
+    # runs as one band: a pan moves the whole image in one copy (the union of the tiles'
+    # clipped rectangles is the clipped union).
+    bands: list[list] = []  # [first tile row, last + 1, runs]; a run is [first tile, last + 1, sx, sy]
     for i in range(TILES):
+        top, bottom = moves[i], moves[i + 1]
+        runs: list[list[int]] = []
         for j in range(TILES):
-            corners = (moves[i][j], moves[i][j + 1], moves[i + 1][j], moves[i + 1][j + 1])
-            sx = round(sum(u for u, _ in corners) / 4)
-            sy = round(sum(v for _, v in corners) / 4)
-            if any(abs(u - sx) > tol or abs(v - sy) > tol for u, v in corners):
+            (u0, v0), (u1, v1) = top[j], top[j + 1]
+            (u2, v2), (u3, v3) = bottom[j], bottom[j + 1]
+            sx = round((u0 + u1 + u2 + u3) / 4)
+            sy = round((v0 + v1 + v2 + v3) / 4)
+            if (abs(u0 - sx) > tol or abs(u1 - sx) > tol or abs(u2 - sx) > tol or abs(u3 - sx) > tol
+                    or abs(v0 - sy) > tol or abs(v1 - sy) > tol or abs(v2 - sy) > tol or abs(v3 - sy) > tol):
                 return None
-            shifts.append((i, j, sx, sy))
+            if runs and runs[-1][2] == sx and runs[-1][3] == sy:
+                runs[-1][1] = j + 1
+            else:
+                runs.append([j, j + 1, sx, sy])
+        if bands and bands[-1][2] == runs:
+            bands[-1][1] = i + 1
+        else:
+            bands.append([i, i + 1, runs])
     out = np.zeros_like(diff)  # what comes from outside t+1's frame: no difference
-    for i, j, sx, sy in shifts:
-        x0, x1 = max(xs[j], -sx), min(xs[j + 1], width - sx)
-        y0, y1 = max(ys[i], -sy), min(ys[i + 1], height - sy)
-        if x1 > x0 and y1 > y0:
-            out[y0:y1, x0:x1] = diff[y0 + sy:y1 + sy, x0 + sx:x1 + sx]
+    for i0, i1, runs in bands:
+        for j0, j1, sx, sy in runs:
+            x0, x1 = max(xs[j0], -sx), min(xs[j1], width - sx)
+            y0, y1 = max(ys[i0], -sy), min(ys[i1], height - sy)
+            if x1 > x0 and y1 > y0:
+                out[y0:y1, x0:x1] = diff[y0 + sy:y1 + sy, x0 + sx:x1 + sx]
     return out
 
 

@@ -2,9 +2,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from app.config import RecognitionConfig
-from app.recognition import Recognizer, box_gaps, find_blobs
+from app.recognition import SMALL_BLOB_COUNT, Recognizer, _components, _neighbour_groups, box_gaps, find_blobs
 
 
 def _mask(*rects: tuple[int, int, int, int], shape: tuple[int, int] = (240, 320)) -> np.ndarray:
@@ -95,3 +97,24 @@ def test_min_fill_rejects_a_patchwork_but_keeps_a_compact_object() -> None:
     strict = Recognizer(RecognitionConfig(area_px=40, dist_px=10, min_fill=0.25))(mask)[0]
     assert sorted(c.box for c in loose) == [(40, 40, 10, 10), (200, 100, 51, 27)]
     assert [c.box for c in strict] == [(40, 40, 10, 10)]
+
+
+_box = st.tuples(st.integers(0, 300), st.integers(0, 200), st.integers(1, 40), st.integers(1, 40))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(_box, min_size=2, max_size=SMALL_BLOB_COUNT), st.sampled_from([0.5, 5.0, 20.0, 20.5, 60.0]))
+def test_pairwise_grouping_of_few_blobs_matches_the_matrix_one(
+        boxes: list[tuple[int, int, int, int]], dist: float) -> None:
+    # Few blobs are grouped pair by pair in plain Python, many by the gap matrix: the same groups
+    # in the same order (the clusters' order, and so the tracker's, depends on it), touching and
+    # overlapping boxes and gaps exactly at the distance included.
+    n_groups, label = _components(box_gaps(np.array(boxes, np.int64)) < dist)
+    by_matrix = [np.flatnonzero(label == g).tolist() for g in range(n_groups)]
+    assert _neighbour_groups([list(b) for b in boxes], dist) == by_matrix
+
+
+def test_pairwise_grouping_joins_a_chain_whose_ends_are_far_apart() -> None:
+    # 0 and 2 are 26 px apart but both within 8 px of 1; 3 stands alone; 4 touches 0.
+    boxes = [[0, 0, 10, 10], [18, 0, 10, 10], [36, 0, 10, 10], [200, 200, 5, 5], [10, 10, 3, 3]]
+    assert _neighbour_groups(boxes, 10.0) == [[0, 1, 2, 4], [3]]
