@@ -36,7 +36,6 @@ not. With ``min_confidence: 0`` every matched confirmed track is reported (the p
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -187,7 +186,7 @@ class TrackConfidence:
             )
             conf = logistic(cfg.bias, self.weights, features)
             reported = conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched
-            out.append(dataclasses.replace(t, confidence=conf, features=features, reported=reported))
+            out.append(t.scored(conf, features, reported))
         # a track that was not handed in is gone (deleted or reset): forget it
         for tid in [tid for tid, ev in self._evidence.items() if not ev.seen]:
             del self._evidence[tid]

@@ -70,6 +70,15 @@ class TrackReport:
     features: tuple[float, ...] = ()  # what the confidence was computed from (app.confidence)
     reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
 
+    def scored(self, confidence: float, features: tuple[float, ...], reported: bool) -> TrackReport:
+        """This report with its confidence filled in (as ``dataclasses.replace``, which looks the
+        fields up on every call: 5x the cost, once per track and frame)."""
+        return TrackReport(
+            track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
+            matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
+            trail=self.trail, confidence=confidence, features=features, reported=reported,
+        )
+
 
 class Tracker:
     """Distance-gated association with a candidate → confirmed → lost life cycle.

@@ -230,3 +230,12 @@ def test_on_swaying_trees_the_confidence_removes_false_objects_not_birds(data_di
     assert without.fp > 300  # the trees are there to be rejected
     assert with_conf.fp < 0.5 * without.fp
     assert with_conf.recall >= without.recall
+
+
+def test_a_scored_report_keeps_every_other_field() -> None:
+    # TrackReport.scored stands in for dataclasses.replace on the hot path: a field added to the
+    # report later and not copied there would be silently reset.
+    t = dataclasses.replace(_report(7, _square(40, 50), ((1.0, 2.0), (3.0, 4.0)), hits=12),
+                            vx=1.5, vy=-0.5, last_seen_s=3.25)
+    assert t.scored(0.42, (1.0, 2.0), False) == dataclasses.replace(
+        t, confidence=0.42, features=(1.0, 2.0), reported=False)
