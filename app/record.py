@@ -215,19 +215,18 @@ class FlightRecord:
                 except queue.Empty:
                     item = ("flush", None)
                 if item is None:
+                    # What this thread queued itself after close() queued the end (the event
+                    # that frames are no longer saved, when the last frames hit the limit) is
+                    # written too: it came after the end only because this thread was behind.
+                    while True:
+                        try:
+                            rest = self._queue.get_nowait()
+                        except queue.Empty:
+                            break
+                        if rest is not None:
+                            self._handle(*rest, files, frames_csv, mot_csv)
                     break
-                kind, payload = item
-                if kind == "frame":
-                    self._save_frame(payload, frames_csv)
-                elif kind == "mot" and mot_csv is not None:
-                    number, boxes = payload
-                    if number <= self._last_saved:  # its frame is on disk (in queue order)
-                        rows = csv.writer(mot_csv)
-                        for tid, x, y, w, h, c, reported in boxes:
-                            if reported:
-                                rows.writerow(mot_row(number, tid, x, y, w, h, c))
-                elif kind in files:
-                    files[kind].write(json.dumps(payload, default=_jsonable) + "\n")
+                self._handle(*item, files, frames_csv, mot_csv)
                 if time.monotonic() - last_flush >= self.cfg.flush_s:
                     self._flush([*files.values(), *extra])
                     last_flush = time.monotonic()
@@ -241,6 +240,21 @@ class FlightRecord:
             self._flush([*files.values(), *extra])
             for fh in [*files.values(), *extra]:
                 fh.close()
+
+    def _handle(self, kind: str, payload: Any, files: dict[str, IO[str]], frames_csv: IO[str] | None,
+                mot_csv: IO[str] | None) -> None:
+        """Write one queued item (in the writer thread)."""
+        if kind == "frame":
+            self._save_frame(payload, frames_csv)
+        elif kind == "mot" and mot_csv is not None:
+            number, boxes = payload
+            if number <= self._last_saved:  # its frame is on disk (in queue order)
+                rows = csv.writer(mot_csv)
+                for tid, x, y, w, h, c, reported in boxes:
+                    if reported:
+                        rows.writerow(mot_row(number, tid, x, y, w, h, c))
+        elif kind in files:
+            files[kind].write(json.dumps(payload, default=_jsonable) + "\n")
 
     def _save_frame(self, payload: tuple[int, float, Frame], frames_csv: IO[str] | None) -> None:
         number, t, frame = payload
