@@ -244,3 +244,68 @@ def test_tile_shifts_place_every_pixel_within_the_tolerance_or_decline() -> None
     assert _shift_tiles(diff_next, h_turn) is None
     # a homography that sends a grid corner through the horizon (w = 0 at x = 320, y = 0)
     assert _shift_tiles(diff_next, np.array([[1, 0, 0], [0, 1, 0], [-1 / 320, 0, 1.0]])) is None
+
+
+@pytest.mark.parametrize("count", [4, 6, 8])
+@pytest.mark.parametrize("shape", [(480, 640), (512, 640)])
+def test_the_crops_mosaic_holds_every_crop_with_the_frame_edges_on_its_edges(
+        count: int, shape: tuple[int, int]) -> None:
+    """LK runs once over all border windows' crops laid out in one image: each crop is copied
+    exactly, no two overlap, and a crop side on the frame's edge is on the mosaic's edge (LK
+    pads there as it did for the crop alone; inner sides may meet other crops)."""
+    det = MotionDetector(DetectionConfig(window_count=count))
+    frame = textured(*shape, seed=4)
+    det.push(frame)
+    mosaic = det._mosaic_cur
+    assert mosaic is not None
+    height, width = shape
+    covered = np.zeros(mosaic.shape, int)
+    for (x0, y0, x1, y1), (mx, my) in zip(det._crops, det._mosaic_at, strict=True):
+        assert np.array_equal(mosaic[my:my + y1 - y0, mx:mx + x1 - x0], frame[y0:y1, x0:x1])
+        covered[my:my + y1 - y0, mx:mx + x1 - x0] += 1
+        assert (x0 == 0) == (mx == 0) and (y0 == 0) == (my == 0)
+        assert (x1 == width) == (mx + x1 - x0 == mosaic.shape[1])
+        assert (y1 == height) == (my + y1 - y0 == mosaic.shape[0])
+    assert covered.max() == 1
+
+
+def test_one_lk_call_over_the_mosaic_follows_the_points_as_each_crop_alone() -> None:
+    """Points in the windows lie lk_search_px from any other crop: at every pyramid level LK
+    sees their own crop, so the one call gives what a call per crop gave."""
+    base = textured(480, 700, seed=8)
+    cur, nxt = base[:, 20:660], base[:, 17:657]  # the camera turned: the scene moves 3 px right
+    det = MotionDetector(DetectionConfig(lk_predict=False))
+    det.push(np.ascontiguousarray(cur))
+    pts, wid = det._pts.copy(), det._wid.copy()
+    det.push(np.ascontiguousarray(nxt))
+    lk = det._lk_params
+    alone = np.empty_like(pts)
+    for i, (x0, y0, x1, y1) in enumerate(det._crops):
+        q1, status, _ = cv2.calcOpticalFlowPyrLK(
+            np.ascontiguousarray(cur[y0:y1, x0:x1]), np.ascontiguousarray(nxt[y0:y1, x0:x1]),
+            (pts[wid == i] - (x0, y0)).astype(np.float32).reshape(-1, 1, 2),
+            None, **lk)  # type: ignore[call-overload]  # None (no start) is accepted; the stubs say no
+        assert status.all()
+        alone[wid == i] = q1.reshape(-1, 2) + (x0, y0)
+    # the points kept (those still inside their windows) against the same points flowed alone
+    kept = [int(np.flatnonzero((np.abs(alone - p) < 0.5).all(axis=1))[0]) for p in det._pts]
+    assert len(kept) > 0.8 * len(pts)
+    assert np.abs(det._pts - alone[kept]).max() < 1e-3
+    assert np.abs(det._pts - pts[kept] - (3.0, 0.0)).max() < 0.25  # and it is the scene's motion
+
+
+def test_a_point_carried_out_of_its_crop_is_not_followed() -> None:
+    """lk_search_px is how far a point may move beyond its window: a pan of 70 px carries the
+    points of the windows on the frame's left edge out of the frame, and with them out of their
+    crops; none of them may vote for the homography."""
+    base = textured(480, 820, seed=9)
+    det = MotionDetector(DetectionConfig(lk_predict=False))
+    cur, nxt = base[:, 100:740], base[:, 170:810]  # the scene moves 70 px left
+    det.push(np.ascontiguousarray(cur))
+    mosaics = (det._mosaic_cur, det._mosaic(np.ascontiguousarray(nxt)))
+    assert mosaics[0] is not None
+    n_before = len(det._pts)
+    _, p1, wid, followed = det._flow(cur, np.ascontiguousarray(nxt), mosaics)  # type: ignore[arg-type]
+    crops = np.array(det._crops, np.float32)[wid]
+    assert ((p1 >= crops[:, :2]) & (p1 < crops[:, 2:])).all()
+    assert len(p1) < n_before and sum(followed) == len(p1)
