@@ -315,9 +315,7 @@ class MotionDetector:
             h = np.array([[1, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]], float)
             self.featureless = True
         # Keep the points that stay inside their own window in frame t+1.
-        b = self._bounds[wid]  # (M, 4): x0, y0, x1, y1 of each point's window
-        x, y = p1[:, 0], p1[:, 1]
-        inside = (x >= b[:, 0]) & (y >= b[:, 1]) & (x < b[:, 2]) & (y < b[:, 3])
+        inside = _in_boxes(p1, self._bounds[wid])
         if inside.all():
             self._pts, self._wid = p1, wid
         else:
@@ -372,9 +370,7 @@ class MotionDetector:
         # flowed alone padded its pyramids there; in the mosaic another crop begins there.)
         # Registration error of the tests' fast pans (mean / worst of every frame, px): ramped
         # to 40 px/frame 0.137 / 0.83 -> 0.071 / 0.23, frames skipped 0.197 / 0.54 -> 0.096 / 0.47.
-        c = self._crop_bounds[wid]
-        x, y = p1[:, 0], p1[:, 1]
-        within = (x >= c[:, 0]) & (y >= c[:, 1]) & (x < c[:, 2]) & (y < c[:, 3])
+        within = _in_boxes(p1, self._crop_bounds[wid])
         if cv2.countNonZero(status) == len(pts) and within.all():
             followed = self._counts
         else:
@@ -567,6 +563,13 @@ def _shift_tiles(diff: np.ndarray, h: np.ndarray) -> np.ndarray | None:
             if x1 > x0 and y1 > y0:
                 out[y0:y1, x0:x1] = diff[y0 + sy:y1 + sy, x0 + sx:x1 + sx]
     return out
+
+
+def _in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Which of ``points`` (M, 2: x, y image px) lie in their own box of ``boxes`` (M, 4: x0, y0,
+    x1, y1 image px, the far sides excluded); (M,) bool."""
+    x, y = points[:, 0], points[:, 1]
+    return (x >= boxes[:, 0]) & (y >= boxes[:, 1]) & (x < boxes[:, 2]) & (y < boxes[:, 3])
 
 
 def _global_shift(src: np.ndarray, dst: np.ndarray, scale: int = 4) -> np.ndarray | None:
