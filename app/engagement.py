@@ -111,7 +111,7 @@ class Engagement:
         self._link_was_lost = False
         self._fresh_after = -math.inf  # only decisions made after this may command
         self._awaiting_mode_since: float | None = None  # link back while in control
-        self._shadow_said: str | None = None
+        self._said: str | None = None  # the last "would ..." text's gist (said once)
         self._last_request = -math.inf
         self._requested_at = -math.inf  # when the current take-over began
         self._engaged_at = -math.inf
@@ -147,7 +147,7 @@ class Engagement:
             if v.mode_t_s > since:
                 self._awaiting_mode_since = None
                 if v.mode != "offboard":
-                    return self._pilot_took_over(v, f"link back in {v.mode}: not taking control back")
+                    return self._pilot_took_over(v, f"midair: link back in {v.mode}, hands off")
             elif v.t_s - since > c.max_mode_age_s:
                 self._awaiting_mode_since = None
                 self._cooldown_until = v.t_s + c.pilot_cooldown_s
@@ -168,7 +168,7 @@ class Engagement:
         # requesting or engaged: we hold (or are asking for) control. PX4 reports its mode
         # once a second, so only a report newer than our switch says the pilot changed it.
         if self.state == ENGAGED and v.mode != "offboard" and v.mode_t_s > self._engaged_at:
-            return self._pilot_took_over(v, f"pilot switched to {v.mode}: midair stops")
+            return self._pilot_took_over(v, f"midair: pilot took {v.mode}, hands off")
         if not v.armed or not v.in_air:
             self.state = MONITOR
             return Output(MONITOR, status="midair: vehicle landed or disarmed, hands off")
@@ -178,6 +178,9 @@ class Engagement:
                                                             and v.mode_t_s >= self._requested_at):
                 self.state = ENGAGED  # acknowledged, or already reported
                 self._engaged_at = v.t_s
+                # The request is answered: an Offboard report from now on is our own
+                # engagement (or, after we leave, a stale report), not a late acceptance.
+                self._requested_at = -math.inf
             elif v.t_s - self._since > c.offboard_confirm_s:
                 self.state = MONITOR
                 self._cooldown_until = v.t_s + c.offboard_confirm_s  # back off, then try again
@@ -213,15 +216,20 @@ class Engagement:
         # not leave. Zero velocity is ignored outside Offboard and means "hold" inside it.
         warm = ZERO if self.cfg.mode == "guard" and v.armed and v.in_air else None
         if cmd is None or cmd.action == NONE:
-            self._shadow_said = None
+            self._said = None
             return Output(MONITOR, setpoint=warm)
         why_not = self._may_not_take_over(v)
         if why_not:
-            return Output(MONITOR, setpoint=warm, status=f"midair: would {cmd.action} but {why_not}")
+            # said once per (command, reason), not every tick: a ground station shows them all
+            gist = f"{cmd.action}|{cmd.object_id}|{why_not[0]}"
+            said, self._said = self._said, gist
+            text = f"midair: {_verb(cmd)} held: {why_not[1]}"
+            return Output(MONITOR, setpoint=warm, status=text if said != gist else None)
         if self.cfg.mode == "shadow":
-            text = f"midair (shadow): would {cmd.action} - {cmd.reason}"
-            said, self._shadow_said = self._shadow_said, cmd.action
-            return Output(MONITOR, status=text if said != cmd.action else None)
+            gist = f"{cmd.action}|{cmd.object_id}|shadow"
+            said, self._said = self._said, gist
+            return Output(MONITOR, status=status_text(cmd, shadow=True) if said != gist else None)
+        self._said = None
         self.state = REQUESTING
         self._since = v.t_s
         self._last_request = v.t_s
@@ -232,31 +240,38 @@ class Engagement:
         return Output(REQUESTING, setpoint=self._velocity(cmd), start_offboard=True,
                       status=status_text(cmd))
 
-    def _may_not_take_over(self, v: VehicleState) -> str | None:
+    def _may_not_take_over(self, v: VehicleState) -> tuple[str, str] | None:
+        """Why midair may not take over now: (a key that stays the same while the reason
+        does, a short text for the ground station), or None."""
         c = self.cfg
         if v.t_s < self._cooldown_until:
-            return f"pilot cooldown ({self._cooldown_until - v.t_s:.1f} s left)"
+            return "cooldown", f"pilot cooldown {self._cooldown_until - v.t_s:.0f} s"
         if not v.armed:
-            return "disarmed"
+            return "disarmed", "disarmed"
         if not v.in_air:
-            return "on the ground"
+            return "ground", "on the ground"
         if v.altitude_m is None or not math.isfinite(v.altitude_m):
-            return "altitude unknown"
+            return "altitude", "altitude unknown"
         if v.altitude_m < c.min_takeover_altitude_m:
-            return f"below {c.min_takeover_altitude_m:g} m"
+            return "low", f"below {c.min_takeover_altitude_m:g} m"
         if v.mode not in c.takeover_modes:
-            return f"mode {v.mode} is not one midair may take over from"
+            return f"mode {v.mode}", f"mode {v.mode} not allowed"
         if v.t_s - v.mode_t_s > c.max_mode_age_s:
-            return "flight mode not reported recently"
+            return "mode age", "no recent mode report"
         return None
 
     def _pilot_took_over(self, v: VehicleState, text: str) -> Output:
         self.state = MONITOR
+        self._requested_at = -math.inf
         self._cooldown_until = v.t_s + self.cfg.pilot_cooldown_s
         return Output(MONITOR, status=text)
 
     def _leave(self, v: VehicleState, to: str, text: str) -> Output:
+        # Leaving answers any open request: without this, the Offboard the vehicle still
+        # reports until its next heartbeat (PX4: 1 Hz) read as a late acceptance, and the
+        # next tick left a second time (a second offboard stop, a second mission start).
         self.state = MONITOR
+        self._requested_at = -math.inf
         return Output(MONITOR, setpoint=ZERO, leave_to=to, status=text)
 
     def _link_lost(self, v: VehicleState) -> Output:
@@ -278,12 +293,25 @@ class Engagement:
         return clamp_velocity(cmd, self.max_speed_mps)
 
 
-def status_text(cmd: Command) -> str:
-    """A status text for the pilot's ground station (MAVLink keeps 50 characters)."""
+STATUS_TEXT_MAX = 50  # characters one MAVLink STATUSTEXT carries (common.xml)
+
+
+def _verb(cmd: Command) -> str:
+    return "stop" if cmd.action == STOP else "evade"
+
+
+def status_text(cmd: Command, shadow: bool = False) -> str:
+    """A status text for the pilot's ground station: what, which object, which way, in
+    that order and within one STATUSTEXT (:data:`STATUS_TEXT_MAX` characters)."""
     obj = f"object {cmd.object_id}" if cmd.object_id is not None else "an object"
-    if cmd.action == STOP:
-        return f"midair: emergency stop, {obj}"
-    return f"midair: evading {obj} {describe_direction((cmd.right_mps, cmd.down_mps))}"
+    if shadow:
+        head = "midair shadow: would " + ("stop" if cmd.action == STOP else "evade")
+    else:
+        head = "midair: emergency stop," if cmd.action == STOP else "midair: evading"
+    text = f"{head} {obj}"
+    if cmd.action != STOP:
+        text += f" {describe_direction((cmd.right_mps, cmd.down_mps))}"
+    return text
 
 
 def clamp_velocity(cmd: Command, max_speed_mps: float) -> tuple[float, float, float]:

@@ -17,12 +17,19 @@ import asyncio
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
-from app.engagement import MONITOR, Output, VehicleState
+from app.engagement import MONITOR, STATUS_TEXT_MAX, Output, VehicleState
 
 log = logging.getLogger(__name__)
+
+# A ground station shows every status text it gets (QGroundControl lists them all): midair
+# sends at most one a second. Texts that come faster wait their turn, the newest few kept
+# (every text goes to the log at once).
+STATUS_TEXT_PERIOD_S = 1.0
+STATUS_TEXT_BACKLOG = 3
 
 # MAVSDK FlightMode names → the mode names of app.config.FLIGHT_MODES
 _MODES = {
@@ -89,6 +96,9 @@ class Px4Link:
         self._engaged_before = False
         self._last_setpoint: tuple[float, float, float] | None = None
         self.setpoint_log: list[tuple[float, tuple[float, float, float]]] = []  # (t sent, FRD)
+        self._texts: deque[str] = deque(maxlen=STATUS_TEXT_BACKLOG)  # waiting to be sent
+        self._text_sent_t = -math.inf
+        self.texts_sent: list[tuple[float, str]] = []  # (monotonic t, text) on the wire
 
     async def connect(self, timeout_s: float = 10.0) -> None:
         from mavsdk import ComponentType, Configuration
@@ -257,14 +267,25 @@ class Px4Link:
         elif out.action == "land":
             await self._guard("land", self._action.land())
         if out.status:
-            await self._status(out.status)
+            log.info("%s", out.status)
+            self._texts.append(out.status)
+        await self._send_text()
         self._engaged_before = out.state != MONITOR
 
-    async def _status(self, text: str) -> None:
+    async def _send_text(self) -> None:
+        """Send the oldest waiting status text if the last went out over a period ago."""
         from mavsdk.asyncio.plugins.server_utility import StatusTextType
 
-        log.info("%s", text)
-        await self._guard("status text", self._utility.send_status_text(StatusTextType.INFO, text[:50]))
+        now = time.monotonic()
+        if not self._texts or now - self._text_sent_t < STATUS_TEXT_PERIOD_S:
+            return
+        text = self._texts.popleft()
+        if len(text) > STATUS_TEXT_MAX:  # the engagement logic keeps within one message
+            log.warning("status text over %d characters, cut: %r", STATUS_TEXT_MAX, text)
+            text = text[:STATUS_TEXT_MAX]
+        self._text_sent_t = now
+        self.texts_sent.append((now, text))
+        await self._guard("status text", self._utility.send_status_text(StatusTextType.INFO, text))
 
     async def _guard(self, what: str, call: Awaitable[object]) -> bool:
         """Await one command; True when it succeeded (acknowledged), False after a logged error."""

@@ -92,6 +92,9 @@ class SimPx4:
         self.status_texts: list[str] = []
         self.mode_log: list[tuple[float, str, str]] = []  # (t, mode, why)
         self.acks: list[tuple[int, int]] = []  # (command, result)
+        # every mode change asked for on the wire, accepted or not: (t, mode); a
+        # MAV_CMD_MISSION_START counts as a request for "mission"
+        self.mode_requests: list[tuple[float, str]] = []
         self.params: dict[str, float] = {"MIS_TAKEOFF_ALT": 2.5, "COM_OF_LOSS_T": of_loss_t_s}
         self._lock = threading.Lock()
         self._link = True
@@ -230,6 +233,7 @@ class SimPx4:
         elif cmd == ml.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             self._set_mode("return", "command")
         elif cmd == ml.MAV_CMD_MISSION_START:
+            self.mode_requests.append((now, "mission"))
             self._set_mode("mission", "command")
         elif cmd == ml.MAV_CMD_REQUEST_MESSAGE:
             self._send_requested(int(p[0]))
@@ -246,6 +250,7 @@ class SimPx4:
         mode = _BY_CODE.get((main, sub)) or _BY_CODE.get((main, 0))
         if mode is None:
             return ml.MAV_RESULT_UNSUPPORTED
+        self.mode_requests.append((now, mode))
         if mode == "offboard" and (now - self._last_setpoint_t > self.of_loss_t_s
                                    or now - self._stream_since < self.prestream_s):
             return ml.MAV_RESULT_DENIED  # PX4: offboard signal not (yet) valid

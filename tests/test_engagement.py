@@ -43,15 +43,15 @@ def test_takes_over_only_when_armed_airborne_high_enough_and_in_an_allowed_mode(
         (vs(0, alt=1.0), "below 2 m"),
         (vs(0, alt=None), "altitude unknown"),
         (vs(0, alt=math.nan), "altitude unknown"),
-        (vs(0, mode="manual"), "mode manual is not one"),
-        (vs(0, mode="land"), "mode land is not one"),
-        (VehicleState(5.0, True, True, True, "position", 10.0, mode_t_s=2.0), "not reported recently"),
+        (vs(0, mode="manual"), "mode manual not allowed"),
+        (vs(0, mode="land"), "mode land not allowed"),
+        (VehicleState(5.0, True, True, True, "position", 10.0, mode_t_s=2.0), "no recent mode report"),
     ]
     for state, reason in refusals:
         e = Engagement(FlightConfig(), 3.0)
         out = e.tick(state, Decision(EVADE_CMD, state.t_s))
         assert out.state == MONITOR and not out.start_offboard and out.setpoint in (None, ZERO)
-        assert out.status is not None and reason in out.status
+        assert out.status is not None and reason in out.status and len(out.status) <= 50
     for mode in ("position", "hold", "mission"):
         assert Engagement(FlightConfig(), 3.0).tick(vs(0, mode), Decision(EVADE_CMD, 0.0)).start_offboard
 
@@ -109,7 +109,7 @@ def test_pilot_mode_change_wins_and_starts_a_cooldown() -> None:
     t = engaged(e)
     out = e.tick(vs(t + DT, "position"), Decision(EVADE_CMD, t + DT))
     assert out.state == MONITOR and out.setpoint is None and not out.start_offboard
-    assert "pilot switched" in (out.status or "")
+    assert "pilot took" in (out.status or "")
     # still threatened, but the pilot has it: no take-over for 10 s (zero keeps the path warm)
     for k in range(2, 150):
         o = e.tick(vs(t + k * DT, "position"), Decision(EVADE_CMD, t + k * DT))
@@ -171,7 +171,7 @@ def test_link_back_in_another_mode_is_not_taken_back() -> None:
     assert held.setpoint == (0.0, 0.0, 0.0)
     out = e.tick(vs(t + 2.1, "return"), Decision(EVADE_CMD, t + 2.1))  # PX4 failsafe: RTL
     assert out.state == MONITOR and out.setpoint in (None, ZERO) and not out.start_offboard
-    assert "not taking control back" in (out.status or "")
+    assert "hands off" in (out.status or "")
     assert not e.tick(vs(t + 2.2, "position"), Decision(EVADE_CMD, t + 2.2)).start_offboard
 
 
@@ -227,3 +227,32 @@ def test_a_switch_accepted_after_midair_gave_up_is_handed_back() -> None:
     t += DT  # ...but the vehicle did switch, and reports it now
     out = e.tick(vs(t, "offboard"), Decision(CALM, t))
     assert out.leave_to == "hold" and out.setpoint == ZERO and "late" in (out.status or "")
+
+
+def test_after_a_release_the_stale_offboard_report_is_not_a_late_acceptance() -> None:
+    """PX4 reports Offboard until its next heartbeat (1 Hz) after midair has left it: that
+    report must not read as a late acceptance (a second offboard stop, a second mission
+    start)."""
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e, mode="mission")
+    leaves = []
+    for _ in range(40):  # calm for 2 s; the vehicle still reports Offboard (mode_t_s fresh)
+        t += DT
+        out = e.tick(vs(t, "offboard"), Decision(CALM, t))
+        if out.leave_to:
+            leaves.append(out.leave_to)
+    assert leaves == ["mission"]
+
+
+def test_a_withheld_take_over_is_said_once_per_object_and_reason() -> None:
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e)
+    e.tick(vs(t + DT, "position"), Decision(EVADE_CMD, t + DT))  # the pilot took it back
+    said = []
+    for k in range(2, 80):  # 4 s of cooldown with the threat still there, then another object
+        t = k * DT
+        cmd = EVADE_CMD if k < 60 else Command(EVADE, 0.0, -2.0, -2.0, 2, "object 2")
+        out = e.tick(vs(t, "position"), Decision(cmd, t))
+        if out.status:
+            said.append(out.status)
+    assert said == ["midair: evade held: pilot cooldown 10 s", "midair: evade held: pilot cooldown 7 s"]

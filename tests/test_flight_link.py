@@ -160,10 +160,63 @@ async def test_release_resumes_the_mission() -> None:
         eng, stop, task, _ = await run_loop(link, slot)
         await slot.feed(Command(EVADE, 0.0, -2.0, 0.0, 1, "test"), 30)
         assert sim.mode == "offboard"
+        t_clear = time.monotonic()
+        seq = sim.state.mission_seq
         await slot.feed(Command(NONE), 40)
         await wait_for(lambda: sim.mode == "mission")
+        await slot.feed(Command(NONE), 45)  # past the next heartbeat: the stale Offboard report
         stop.set()
         await task
+    # exactly one offboard stop (PX4: a switch to Hold) and one mission start, on the wire
+    asked = [m for t, m in sim.mode_requests if t > t_clear]
+    assert asked.count("hold") == 1, asked
+    assert asked.count("mission") == 1, asked
+    assert sim.state.mission_seq >= seq  # resumed from its current item, not restarted
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(60)
+async def test_release_to_hold_leaves_offboard_once(rig: tuple[SimPx4, Px4Link]) -> None:
+    sim, link = rig
+    slot = Slot()
+    eng, stop, task, _ = await run_loop(link, slot)
+    await slot.feed(Command(EVADE, 0.0, 2.0, 0.0, 1, "test"), 30)
+    assert sim.mode == "offboard"
+    t_clear = time.monotonic()
+    await slot.feed(Command(NONE), 40)
+    await wait_for(lambda: sim.mode == "hold")
+    await slot.feed(Command(NONE), 45)  # the vehicle reports Offboard until its next heartbeat
+    stop.set()
+    await task
+    assert [m for t, m in sim.mode_requests if t > t_clear] == ["hold"]
+    assert not any("late" in text for text in sim.status_texts), sim.status_texts
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(60)
+async def test_status_texts_at_most_one_a_second_and_within_one_message(
+        rig: tuple[SimPx4, Px4Link]) -> None:
+    """A threat that persists through the pilot's cooldown: midair says so once, not 20
+    times a second; every text fits one STATUSTEXT (50 characters) with the gist first."""
+    sim, link = rig
+    slot = Slot()
+    eng, stop, task, _ = await run_loop(link, slot)
+    await slot.feed(Command(EVADE, 0.0, 2.0, 2.0, 7, "test"), 30)
+    assert sim.mode == "offboard"
+    sim.pilot_set_mode("position")
+    await slot.feed(Command(EVADE, 0.0, 2.0, 2.0, 7, "test"), 90)  # 3 s of cooldown, threat on
+    await slot.feed(Command(EVADE, 0.0, -2.0, 2.0, 8, "test"), 30)  # another object
+    stop.set()
+    await task
+    sent = link.texts_sent
+    assert sent and all(len(text) <= 50 for _, text in sent)
+    assert all(b[0] - a[0] >= 0.99 for a, b in zip(sent, sent[1:], strict=False)), sent
+    texts = [text for text in sim.status_texts if text]  # what arrived at the vehicle
+    assert texts == [text for _, text in sent]
+    assert "midair: evading object 7 down-right" in texts
+    assert any(t.startswith("midair: pilot took position") for t in texts), texts
+    held = [t for t in texts if "held" in t]
+    assert len(held) == 2 and "pilot cooldown" in held[0], texts  # once per object
 
 
 @pytest.mark.asyncio
