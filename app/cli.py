@@ -95,9 +95,12 @@ def _parser() -> argparse.ArgumentParser:
     with_config(b)
 
     f = sub.add_parser("fly", help="the flight process: camera -> perception -> PX4 offboard")
-    f.add_argument("--camera", help="realsense (the D435i); synthetic (a ball thrown at the "
-                   "vehicle, rendered live); or a recording folder, video or RealSense recording "
-                   "(.db3/.bag) played as the camera (default: capture.camera)")
+    f.add_argument("--camera", help="realsense (the D435i); synthetic (balls thrown at the "
+                   "vehicle now and then, rendered live, until stopped); or a recording folder, "
+                   "video or RealSense recording (.db3/.bag) played as the camera (default: "
+                   "capture.camera)")
+    f.add_argument("--seconds", type=float, metavar="S",
+                   help="stop after S seconds (default: when stopped, or the recording ends)")
     f.add_argument("--connection", help="MAVSDK URL (default: flight.connection of the config)")
     f.add_argument("--mode", choices=("guard", "shadow", "test-flight"),
                    help="override flight.mode")
@@ -312,6 +315,8 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
     from app.sources import FrameSource, open_source
     from hardware.px4 import FlightLinkError, Px4Link
 
+    if args.seconds is not None and not args.seconds > 0:
+        raise UsageError(f"--seconds {args.seconds}: must be > 0")
     flight = cfg.flight
     if args.connection:
         flight = replace(flight, connection=args.connection)
@@ -332,9 +337,9 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
 
         source = RealSenseSource(cfg.capture)
     elif camera == "synthetic":
-        from app.synthetic import SyntheticSource, ball_scene
+        from app.synthetic import ThrowsSource
 
-        source = SyntheticSource(ball_scene(), "synthetic ball")
+        source = ThrowsSource()
     else:
         source = open_source(camera, capture=cfg.capture)
     record = None
@@ -354,7 +359,8 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
         notifier.status(f"connecting to {flight.connection}")
         await link.connect(timeout_s=flight.connect_timeout_s)
         try:
-            stats = await fly(cfg, source, link, record=record, notifier=notifier)
+            stats = await fly(cfg, source, link, record=record, notifier=notifier,
+                              seconds=args.seconds)
             summary.update(stats.summary())
         finally:
             await link.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -20,9 +21,18 @@ class Frame:
     """One camera frame. Arrays are owned by the frame (never an SDK buffer)."""
 
     index: int  # 1-based frame number in its source
-    t_s: float  # capture time, s (source clock; monotonic for live cameras)
+    t_s: float  # capture time, s (source clock; monotonic for live cameras): perception's time
     color: np.ndarray  # (H, W, 3) uint8 BGR, or (H, W) uint8 grey
     depth: np.ndarray | None = None  # (H', W') uint16 mm, 0 = no data
+    # when the flight process took the frame in (monotonic, s): a recording played as the
+    # camera keeps its own ``t_s`` for perception (same tracks on every playback) and gets
+    # this for latency and decision age; NaN for a live camera, whose ``t_s`` is monotonic
+    t_arrived_s: float = math.nan
+
+    @property
+    def t_monotonic_s(self) -> float:
+        """Monotonic time of the frame's capture (or arrival, for a played recording), s."""
+        return self.t_s if math.isnan(self.t_arrived_s) else self.t_arrived_s
 
 
 @dataclass

@@ -27,6 +27,7 @@ import csv
 import dataclasses
 import json
 import logging
+import math
 import os
 import queue
 import shutil
@@ -173,7 +174,10 @@ class FlightRecord:
             self._pending_frames += 1
             self._numbered += 1
             number = self._numbered
-        self._queue.put(("frame", (number, self.t(frame.t_s), frame)))
+        # frames.csv keeps perception's clock, so that the record replays to the tracks flown:
+        # the record's clock for a live camera, the recording's own for one played as camera
+        t_frame = frame.t_s if not math.isnan(frame.t_arrived_s) else self.t(frame.t_s)
+        self._queue.put(("frame", (number, t_frame, frame)))
         return number
 
     def tracks(self, frame: int, t_capture: float, record_frame: int | None,

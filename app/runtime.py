@@ -47,19 +47,28 @@ STALL_FACTOR = 5.0  # no frame for this many frame intervals is logged as a came
 
 
 class LatestSlot(Generic[T]):
-    """One newest value and an event that says a newer one arrived (never a queue)."""
+    """One newest value and an event that says a newer one arrived (never a queue).
+    ``taken`` is set when the consumer has taken the newest value."""
 
     def __init__(self) -> None:
         self.value: T | None = None
         self.version = 0
         self.event = asyncio.Event()
+        self.taken = asyncio.Event()
+        self.taken.set()
 
     def put(self, value: T) -> None:
         self.value = value
         self.version += 1
+        self.taken.clear()
         self.event.set()
 
     def get(self) -> T | None:
+        return self.value
+
+    def take(self) -> T | None:
+        """The newest value, marked as taken."""
+        self.taken.set()
         return self.value
 
 
@@ -148,8 +157,12 @@ def _settle(fut: asyncio.Future[object], result: object, error: BaseException | 
 
 async def capture(source: FrameSource, frames: LatestSlot[Frame], stop: asyncio.Event,
                   stats: RunStats, realtime: bool = True, record: FlightRecord | None = None) -> None:
-    """Put the source's frames into the slot. A recording is played at its frame rate and
-    stamped with the monotonic time it is "captured"; a live camera stamps its own frames.
+    """Put the source's frames into the slot. A live camera stamps its own frames and its
+    newest frame replaces one perception has not yet taken. A recording is played at its
+    frame rate, every frame perceived (the next is put only once perception has taken the
+    last: playback falls behind rather than drop frames) and with its own frame times, so
+    that it gives the same tracks and decisions on every playback; the time it arrived
+    (``Frame.t_arrived_s``) serves latency accounting and the decisions' age.
 
     The blocking read runs in a thread; the source is closed (in that thread) on the way out.
     """
@@ -190,13 +203,16 @@ async def capture(source: FrameSource, frames: LatestSlot[Frame], stop: asyncio.
                     record.event("camera_resumed", gap_s=round(now - last, 3))
             last = now
             if not source.live:
+                await _wait_either(frames.taken, stop)
+                if stop.is_set():
+                    break
                 if realtime:
                     delay = t0 + k * period - time.monotonic()
                     if delay > 0:
                         await asyncio.sleep(delay)
                     elif delay < -period:  # late (after a stall): play on from now, no burst
                         t0, k = time.monotonic(), 0
-                frame = replace(frame, t_s=time.monotonic())
+                frame = replace(frame, t_arrived_s=time.monotonic())
             stats.frames_in += 1
             frames.put(frame)
             k += 1
@@ -233,7 +249,7 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
         while not stop.is_set():
             await frames.event.wait()
             frames.event.clear()
-            frame = frames.get()
+            frame = frames.take()
             if frame is None or frames.version == seen or stop.is_set():
                 continue  # woken without a new frame (shutdown)
             stats.frames_dropped += max(0, frames.version - seen - 1)
@@ -257,8 +273,8 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                     {"id": o.track_id, "xyz_m": [round(c, 3) for c in o.xyz_m],
                      "closing_mps": round(o.closing_mps, 2),
                      "ttc_s": None if o.ttc_s is None else round(o.ttc_s, 3)} for o in objects]
-                d = Decision(command, result.frame.t_s, result.frame.index, t_perceived, t_decided,
-                             t_start)
+                d = Decision(command, result.frame.t_monotonic_s, result.frame.index, t_perceived,
+                             t_decided, t_start)
                 return _Worked(d, boxes, result.frame.index, objs)
 
             worked = await loop.run_in_executor(pool, work)
@@ -336,8 +352,9 @@ class _TickLog:
 
 async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_signals: bool = True,
               realtime: bool = True, record: FlightRecord | None = None,
-              notifier: Notifier | None = None) -> RunStats:
-    """Run the three coroutines until the recording ends, SIGINT/SIGTERM, or an error; then
+              notifier: Notifier | None = None, seconds: float | None = None) -> RunStats:
+    """Run the three coroutines until the recording ends, ``seconds`` have passed,
+    SIGINT/SIGTERM, or an error; then
     stop control first (zero velocity, leave Offboard), then perception, then the camera.
 
     An error in any coroutine is raised after that shutdown (as the TaskGroup's
@@ -379,8 +396,14 @@ async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_sig
             per = tg.create_task(perceive(frames, decisions, wake, stop, cfg, decider, link, stats,
                                           record, notifier), name="perception")
             cam = tg.create_task(capture(source, frames, stop, stats, realtime, record), name="capture")
-            await asyncio.wait([cam, asyncio.ensure_future(stop.wait())],
-                               return_when=asyncio.FIRST_COMPLETED)
+            ends = [cam, asyncio.ensure_future(stop.wait())]
+            if seconds is not None:
+                ends.append(asyncio.ensure_future(asyncio.sleep(seconds)))
+            done, _ = await asyncio.wait(ends, return_when=asyncio.FIRST_COMPLETED)
+            for w in ends[1:]:
+                w.cancel()
+            if seconds is not None and ends[2] in done and not stop.is_set():
+                stats.ended_by = stats.ended_by or f"{seconds:g} s up"
             if not stop.is_set():
                 await _sleep_or_stop(0.5, stop)  # the last decisions act before control stops
             stop.set()
@@ -402,6 +425,18 @@ async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_sig
         if record:
             record.event("end", ended_by=stats.ended_by or "stopped")
     return stats
+
+
+async def _wait_either(event: asyncio.Event, stop: asyncio.Event) -> None:
+    """Return when ``event`` or ``stop`` is set."""
+    if event.is_set() or stop.is_set():
+        return
+    waiters = [asyncio.ensure_future(event.wait()), asyncio.ensure_future(stop.wait())]
+    try:
+        await asyncio.wait(waiters, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waiters:
+            w.cancel()
 
 
 async def _sleep_or_stop(seconds: float, stop: asyncio.Event) -> None:

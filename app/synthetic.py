@@ -47,6 +47,7 @@ class SyntheticObject3D:
     velocity_mps: tuple[float, float, float]
     diameter_m: float = 0.3
     brightness: int = 40
+    t0_s: float = 0.0  # it appears at this scene time (at start_xyz_m), s
 
 
 @dataclass(frozen=True)
@@ -64,6 +65,7 @@ class SyntheticScene:
                         start_m=20.0, closing_mps=3.0),
     )
     objects_3d: tuple[SyntheticObject3D, ...] = ()
+    first_frame: int = 0  # 0-based number of the scene's first frame (a scene continued)
 
     def camera(self) -> CameraModel:
         """Colour intrinsics of a D435i-like lens at this resolution; depth aligned to it."""
@@ -130,6 +132,64 @@ class SyntheticSource(FrameSource):
             yield frame
 
 
+class ThrowsSource(FrameSource):
+    """Balls thrown at a hovering vehicle now and then, rendered live, until stopped (or
+    for ``seconds``): a desk run of ``midair fly`` long enough to watch shadow mode or the
+    service. Each throw starts 9-14 m out within the view and closes at 3-6 m/s, aimed to
+    pass within 0.5 m; 2-6 s of quiet sky lie between throws. Deterministic for ``seed``.
+    """
+
+    CHUNK_FRAMES = 9000  # rendered as scenes of this many frames, continued seamlessly
+
+    def __init__(self, seconds: float | None = None, fps: float = 30.0, seed: int = 0,
+                 name: str = "synthetic throws") -> None:
+        if seconds is not None and not seconds > 0:
+            raise ValueError(f"seconds = {seconds}: must be > 0")
+        self.seconds = seconds
+        self.fps = fps
+        self.seed = seed
+        self.name = name
+        self.has_depth = True
+        self.camera = SyntheticScene(fps=fps).camera()
+        self.throws: list[SyntheticObject3D] = []  # every throw so far (its truth)
+
+    def __len__(self) -> int:
+        return 0 if self.seconds is None else int(self.seconds * self.fps)
+
+    def _throws_until(self, rng: np.random.Generator, t_end_s: float) -> None:
+        t = self.throws[-1].t0_s + self._flight_s(self.throws[-1]) if self.throws else 1.5
+        while t < t_end_s:
+            z = float(rng.uniform(9.0, 14.0))
+            closing = float(rng.uniform(3.0, 6.0))
+            x, y = float(rng.uniform(-0.25, 0.25)) * z, float(rng.uniform(-0.18, 0.18)) * z
+            miss = rng.uniform(-0.5, 0.5, 2)  # where it crosses the camera plane, m
+            fly_s = z / closing
+            vel = ((miss[0] - x) / fly_s, (miss[1] - y) / fly_s, -closing)
+            ob = SyntheticObject3D(len(self.throws) + 1, (x, y, z), vel, 0.3, t0_s=t)
+            self.throws.append(ob)
+            t += self._flight_s(ob) + float(rng.uniform(2.0, 6.0))
+
+    @staticmethod
+    def _flight_s(ob: SyntheticObject3D) -> float:
+        return ob.start_xyz_m[2] / -ob.velocity_mps[2]
+
+    def __iter__(self) -> Iterator[Frame]:
+        rng = np.random.default_rng(self.seed)
+        total = None if self.seconds is None else int(self.seconds * self.fps)
+        first = 0
+        while total is None or first < total:
+            n = self.CHUNK_FRAMES if total is None else min(self.CHUNK_FRAMES, total - first)
+            t_end = (first + n) / self.fps
+            self._throws_until(rng, t_end)
+            live = tuple(o for o in self.throws
+                         if o.t0_s < t_end and o.t0_s + self._flight_s(o) > first / self.fps)
+            scene = SyntheticScene(fps=self.fps, frames=n, seed=2, pan_px_per_frame=0.0,
+                                   objects=(), objects_3d=live, first_frame=first)
+            for frame, _truth in render(scene):
+                yield frame
+            first += n
+
+
 def camera_homography(scene: SyntheticScene, k: int) -> np.ndarray:
     """World px -> image px of frame k (0-based): a slow pan, tilt wobble and roll."""
     tx = 0.5 * scene.width + scene.pan_px_per_frame * k
@@ -146,7 +206,7 @@ def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float
     rng = np.random.default_rng(scene.seed)
     world = _world(scene, rng)
     size = (scene.width, scene.height)
-    for k in range(scene.frames):
+    for k in range(scene.first_frame, scene.first_frame + scene.frames):
         grey = cv2.warpPerspective(world, camera_homography(scene, k), size, flags=cv2.INTER_LINEAR,
                                    borderMode=cv2.BORDER_REFLECT)
         depth = np.zeros((scene.height, scene.width), np.uint16)  # sky and far ground: no data
@@ -169,7 +229,9 @@ def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float
                 truth.append((ob.object_id, x0, y0, x1 - x0, y1 - y0))
         cam = scene.camera().color
         for ob3 in scene.objects_3d:
-            t = k / scene.fps
+            t = k / scene.fps - ob3.t0_s
+            if t < 0:
+                continue  # not thrown yet
             x3, y3, z3 = (p + v * t for p, v in zip(ob3.start_xyz_m, ob3.velocity_mps, strict=True))
             if z3 < 0.25:
                 continue  # at or past the camera

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import signal
 import socket
 import subprocess
@@ -16,6 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 pytest.importorskip("mavsdk")
@@ -260,3 +262,89 @@ def test_an_unwritable_record_folder_does_not_keep_the_guard_on_the_ground(tmp_p
         capture_output=True, text=True, timeout=60)
     assert "flight record disabled" in proc.stderr and str(blocker) in proc.stderr
     assert proc.returncode == 4  # it went on to the autopilot (none here), not stopped by the disk
+
+
+class _Jittery:
+    """A recording whose frames arrive with scheduling jitter (0-20 ms, seeded): the
+    frames themselves, and their own times, are those of the recording."""
+
+    def __init__(self, path: Path, seed: int) -> None:
+        self.inner = open_source(path)
+        self.rng = np.random.default_rng(seed)
+        for name in ("name", "fps", "has_depth", "camera", "live"):
+            setattr(self, name, getattr(self.inner, name))
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def __iter__(self) -> Any:
+        for frame in self.inner:
+            time.sleep(float(self.rng.uniform(0.0, 0.02)))
+            yield frame
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(120)
+async def test_a_recording_played_twice_as_the_camera_gives_the_same_tracks_and_decisions(
+        ball: Path, tmp_path: Path) -> None:
+    """Perception runs on the recording's own frame times and sees every frame, whatever
+    the playback's timing: two playbacks with different jitter agree frame for frame."""
+    runs = []
+    for seed in (1, 2):
+        record = FlightRecord(replace(RecordConfig(), dir=str(tmp_path / f"r{seed}"), frames="none"),
+                              Config()).start()
+        async with vehicle(SimState(mode="position"), flying) as (sim, link):
+            stats = await fly(Config(), _Jittery(ball, seed), link,  # type: ignore[arg-type]
+                              install_signals=False, record=record)
+        record.close(stats.summary())
+        assert stats.frames_dropped == 0 and stats.frames_in == 110
+        tracks = [(r["frame"], r["tracks"]) for r in jsonl(record.folder / "tracks.jsonl")]
+        decided = [(d["frame"], d["action"], d["velocity_frd_mps"], d["objects"])
+                   for d in jsonl(record.folder / "decisions.jsonl")]
+        runs.append((tracks, decided))
+    assert len(runs[0][1]) >= 100 and any(a == "evade" for _, a, _, _ in runs[0][1])
+    assert runs[0] == runs[1]
+
+
+def test_the_synthetic_camera_throws_balls_until_stopped() -> None:
+    from app.synthetic import ThrowsSource
+
+    source = ThrowsSource(seed=3)
+    source.CHUNK_FRAMES = 40  # cross chunk boundaries often
+    frames = []
+    for frame in source:
+        frames.append((frame.index, frame.t_s, int(frame.color.mean())))
+        if len(frames) == 30 * 25:  # 25 s of an endless source
+            break
+    assert [f[0] for f in frames] == list(range(1, 751))
+    assert np.allclose(np.diff([f[1] for f in frames]), 1 / 30)
+    assert len(source.throws) >= 3  # one every few seconds
+    for ob in source.throws:  # each aimed to pass within 0.5 m of the camera
+        fly_s = ob.start_xyz_m[2] / -ob.velocity_mps[2]
+        miss = [p + v * fly_s for p, v in zip(ob.start_xyz_m[:2], ob.velocity_mps[:2], strict=True)]
+        assert math.hypot(*miss) <= 0.5 * math.sqrt(2) + 1e-9
+    with pytest.raises(ValueError, match="seconds = 0: must be > 0"):
+        ThrowsSource(seconds=0)
+
+
+def test_fly_synthetic_runs_until_its_seconds_are_up(tmp_path: Path) -> None:
+    port = free_udp_port()
+    sim = SimPx4(port, state=SimState(mode="position")).start()
+    try:
+        t0 = time.monotonic()
+        proc = subprocess.run(
+            [sys.executable, "-m", "app.cli", "fly", "--camera", "synthetic", "--mode", "shadow",
+             "--connection", f"udpin://0.0.0.0:{port}", "--seconds", "9", "--no-record"],
+            capture_output=True, text=True, timeout=90)
+        took = time.monotonic() - t0
+    finally:
+        sim.stop()
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads(proc.stdout[proc.stdout.index("{"):])
+    assert summary["ended_by"] == "9 s up" and took >= 9
+    assert summary["frames_in"] >= 200
+    assert any(t.startswith("midair shadow: would evade") for t in sim.status_texts), sim.status_texts
+    assert all(m != "offboard" for _, m, _ in sim.mode_log)  # shadow never commands
