@@ -19,7 +19,7 @@ from app.config import Config, explain, load_config, to_yaml
 from app.errors import UsageError, UserError
 
 if TYPE_CHECKING:
-    from app.simulate import Encounter
+    from app.sim.simulate import Encounter
 
 log = logging.getLogger("midair")
 
@@ -163,8 +163,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
-    from app.replay import ProgressBar, run_replay
-    from app.sources import open_source
+    from app.runtime.sources import open_source
+    from app.tools.replay import ProgressBar, run_replay
 
     source = open_source(args.source, fps=args.fps)
     bar = ProgressBar(f"replay {source.name}")
@@ -182,10 +182,10 @@ def _cmd_replay(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
-    from app.evaluate import read_boxes, score
-    from app.replay import ProgressBar, run_replay
-    from app.sources import open_source
-    from app.synthetic import SyntheticScene, write_recording
+    from app.runtime.sources import open_source
+    from app.sim.synthetic import SyntheticScene, write_recording
+    from app.tools.evaluate import read_boxes, score
+    from app.tools.replay import ProgressBar, run_replay
 
     if args.frames < 10:
         raise UsageError(f"--frames {args.frames}: must be at least 10")
@@ -209,7 +209,7 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
-    from app.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
+    from app.tools.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
 
     clips = find_clips(args.path, args.gt)
     if args.only:
@@ -229,7 +229,7 @@ def _cmd_evaluate(args: argparse.Namespace, cfg: Config) -> int:
 def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
     import numpy as np
 
-    from app.confidence_fit import (
+    from app.tools.confidence_fit import (
         collect_all,
         fit_logistic,
         leave_one_clip_out,
@@ -237,7 +237,7 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
         sum_scores,
         weights_yaml,
     )
-    from app.evaluate import TOTALS, find_clips
+    from app.tools.evaluate import TOTALS, find_clips
 
     keys = [k.strip() for k in args.train.split(",") if k.strip()]
     clips = [c for c in find_clips(args.path) if any(k in c.name or k in c.group for k in keys)]
@@ -277,10 +277,10 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
-    from app.bench import format_bench, run_bench
+    from app.tools.bench import format_bench, run_bench
 
     if args.fly or args.link:
-        from app.linkbench import run_fly_bench, run_link_bench
+        from app.tools.linkbench import run_fly_bench, run_link_bench
         from hardware.px4 import FlightLinkError
 
         try:
@@ -309,10 +309,11 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
     import asyncio
     from dataclasses import replace
 
-    from app.notify import Notifier
-    from app.record import FlightRecord
-    from app.runtime import fly
-    from app.sources import FrameSource, open_source
+    from app.perception.frames import FrameSource
+    from app.runtime.notify import Notifier
+    from app.runtime.process import fly
+    from app.runtime.record import FlightRecord
+    from app.runtime.sources import open_source
     from hardware.px4 import FlightLinkError, Px4Link
 
     if args.seconds is not None and not args.seconds > 0:
@@ -337,7 +338,7 @@ def _cmd_fly(args: argparse.Namespace, cfg: Config) -> int:
 
         source = RealSenseSource(cfg.capture)
     elif camera == "synthetic":
-        from app.synthetic import ThrowsSource
+        from app.sim.synthetic import ThrowsSource
 
         source = ThrowsSource()
     else:
@@ -402,7 +403,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     import time
 
     try:
-        from app.campaign import (
+        from app.sim.campaign import (
             default_workers,
             object_free,
             run_campaign,
@@ -411,7 +412,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
             with_trigger,
             write_report,
         )
-        from app.simulate import Encounter
+        from app.sim.simulate import Encounter
     except ImportError as exc:  # pymavlink (the simulated PX4) missing
         raise UsageError(f"simulate needs the simulated PX4's packages: {exc}") from None
     if args.trigger:
@@ -448,9 +449,9 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _single_encounter(cfg: Config, enc: Encounter, out: Path, connection: str | None = None) -> int:
-    from app.replay import run_replay
-    from app.simulate import run_encounter
-    from app.sources import open_source
+    from app.runtime.sources import open_source
+    from app.sim.simulate import run_encounter
+    from app.tools.replay import run_replay
     from hardware.px4 import FlightLinkError
 
     out.mkdir(parents=True, exist_ok=True)

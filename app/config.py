@@ -167,7 +167,7 @@ class TrackingConfig:
 
 @dataclass(frozen=True)
 class ConfidenceConfig:
-    """Track confidence — object or moving clutter (beyond the paper; app/confidence.py).
+    """Track confidence — object or moving clutter (beyond the paper; app/perception/confidence.py).
     Weights: `midair fit-confidence ../shared/data --min-confidence 0.35` (all 32 Halmstad
     clips, 28 829 track reports, with the detection/tracking defaults above)."""
 

@@ -2,7 +2,7 @@
 
 The only module that imports ``mavsdk``. It keeps the newest telemetry (draining every
 stream it subscribes to, so nothing queues up) and carries out the engagement logic's
-:class:`app.engagement.Output`: velocity setpoints in the body frame, offboard start and
+:class:`app.flight.engagement.Output`: velocity setpoints in the body frame, offboard start and
 stop, resuming a mission, status texts for the ground station.
 
 Facts this relies on (mavsdk 4.1 against PX4 SITL): ``udpin://0.0.0.0:PORT`` (not
@@ -21,7 +21,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 
-from app.engagement import MONITOR, STATUS_TEXT_MAX, Output, VehicleState
+from app.flight.engagement import MONITOR, STATUS_TEXT_MAX, Output, VehicleState
 
 log = logging.getLogger(__name__)
 

@@ -41,8 +41,7 @@ import numpy as np
 from app.camera import CameraModel, Intrinsics
 from app.config import CaptureConfig
 from app.errors import SourceError
-from app.perception import Frame
-from app.sources import FrameSource
+from app.perception.frames import Frame, FrameSource
 
 log = logging.getLogger(__name__)
 

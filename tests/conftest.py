@@ -37,7 +37,7 @@ def textured(h: int = 480, w: int = 640, seed: int = 0) -> np.ndarray:
 
 
 def free_udp_port() -> int:
-    from hardware.sim_px4 import free_udp_port as pick
+    from app.sim.px4 import free_udp_port as pick
 
     return pick()
 
@@ -54,8 +54,8 @@ async def wait_for(pred: Callable[[], bool], timeout: float = 5.0) -> None:
 async def vehicle(state: Any = None, ready: Callable[[Any], bool] | None = None) -> AsyncIterator[Any]:
     """The PX4 stand-in on a free port and a connected :class:`hardware.px4.Px4Link`;
     ``ready(snapshot)`` is awaited before the body runs. Yields ``(sim, link)``."""
+    from app.sim.px4 import SimPx4
     from hardware.px4 import Px4Link
-    from hardware.sim_px4 import SimPx4
 
     port = free_udp_port()
     sim = SimPx4(port, state=state).start()

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import yaml
 
-from app.confidence import FEATURES, TrackConfidence, ring_texture, straightness
-from app.confidence_fit import fit_logistic
 from app.config import ConfidenceConfig, config_from_mapping
-from app.recognition import Cluster
-from app.synthetic import SyntheticObject, SyntheticScene, write_recording
-from app.tracking import TrackReport
+from app.perception.confidence import FEATURES, TrackConfidence, ring_texture, straightness
+from app.perception.recognition import Cluster
+from app.perception.tracking import TrackReport
+from app.sim.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.tools.confidence_fit import fit_logistic
 from tests.conftest import textured
 
 
@@ -217,7 +217,7 @@ def test_on_swaying_trees_the_confidence_removes_false_objects_not_birds(data_di
     drop most of the false rows of reporting every matched track (the paper), and no birds.
     (The clip is one of those the shipped weights were fitted on: a guard, not an estimate.)"""
     from app.config import Config
-    from app.evaluate import Clip, evaluate_clip
+    from app.tools.evaluate import Clip, evaluate_clip
 
     name = "V_BIRD_020"
     clip = Clip(name, data_dir / "halmstad_drone_dataset" / f"{name}.mp4",

@@ -13,13 +13,13 @@ from hypothesis import strategies as st
 
 from app.camera import CameraModel, Intrinsics
 from app.config import Config, DecisionConfig, avoid_distance_m, config_from_mapping, explain
-from app.decision import EVADE, NONE, STOP, DecisionMaker, ObjectState, away_from, closes_on
-from app.depth import object_depth
+from app.decision.depth import object_depth
+from app.decision.policy import EVADE, NONE, STOP, DecisionMaker, ObjectState, away_from, closes_on
 from app.errors import ConfigError
-from app.recognition import Cluster
-from app.replay import run_replay
-from app.sources import open_source
-from app.synthetic import approach_scene, write_recording
+from app.perception.recognition import Cluster
+from app.runtime.sources import open_source
+from app.sim.synthetic import approach_scene, write_recording
+from app.tools.replay import run_replay
 
 CAM = CameraModel(Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5),
                   Intrinsics(640, 480, 385.0, 385.0, 319.5, 239.5),
@@ -74,7 +74,7 @@ def test_no_depth_pixels_mean_no_distance() -> None:
     far = np.full((480, 640), 15000, np.uint16)  # 15 m: beyond the trusted range
     assert object_depth(cl, far, CAM, 0.2, 10.0, 25, 6) is None
     dm = DecisionMaker(CFG, CAM)
-    from app.tracking import TrackReport
+    from app.perception.tracking import TrackReport
     tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, ())
     cmd, objects = dm.step([tr], zeros, 0.0, ALT)
     assert cmd.action == NONE and objects == []
@@ -222,7 +222,7 @@ def _run_noisy_depth(cfg: DecisionConfig, z0: float, closing: float, seed: int) 
     return how long after its first depth an evasion began (None: never)."""
     cl = Cluster(320.0, 240.0, (310, 230, 20, 20), 400,
                  (np.array([[[310, 230]], [[329, 230]], [[329, 249]], [[310, 249]]]),))
-    from app.tracking import TrackReport
+    from app.perception.tracking import TrackReport
     tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, ())
     rng = np.random.default_rng(seed)
     dm = DecisionMaker(cfg, CAM)
@@ -283,7 +283,7 @@ def test_min_track_confidence_keeps_unbelieved_tracks_out_of_depth() -> None:
     """Only with ``min_track_confidence`` raised does a low-confidence track go unmeasured."""
     import dataclasses
 
-    from app.tracking import TrackReport
+    from app.perception.tracking import TrackReport
     cl = Cluster(320.0, 240.0, (310, 230, 20, 20), 400, (np.array([[[310, 230]], [[329, 230]],
                                                                    [[329, 249]], [[310, 249]]]),))
     depth = np.full((480, 640), 3000, np.uint16)  # 3 m everywhere

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from app.config import DetectionConfig
-from app.detection import SHIFT_TOLERANCE_PX, MotionDetector, _shift_tiles, border_windows
 from app.errors import SourceError
+from app.perception.detection import SHIFT_TOLERANCE_PX, MotionDetector, _shift_tiles, border_windows
 from tests.conftest import textured
 
 
@@ -176,7 +176,7 @@ def test_a_pan_already_fast_at_the_start_is_registered_from_a_whole_frame_shift(
 
 
 def test_whole_frame_shift_has_the_flow_sign() -> None:
-    from app.detection import _global_shift
+    from app.perception.detection import _global_shift
 
     base = textured(480, 700, seed=1)
     shift = _global_shift(base[:, 30:670], base[:, 10:650])  # content moves 20 px to the right

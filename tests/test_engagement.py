@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 
 from app.config import FlightConfig
-from app.decision import EVADE, NONE, STOP, Command
-from app.engagement import (
+from app.decision.policy import EVADE, NONE, STOP, Command
+from app.flight.engagement import (
     ENGAGED,
     MONITOR,
     REQUESTING,

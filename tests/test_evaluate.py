@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from app.evaluate import read_boxes, score
-from app.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.sim.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.tools.evaluate import read_boxes, score
 
 Rows = dict[int, list[tuple[int, float, float, float, float]]]
 

@@ -15,11 +15,11 @@ pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
 
 from app.config import FlightConfig  # noqa: E402
-from app.decision import EVADE, NONE, STOP, Command  # noqa: E402
-from app.engagement import Decision, Engagement, VehicleState  # noqa: E402
-from app.flight import LoopStats, control_loop  # noqa: E402
+from app.decision.policy import EVADE, NONE, STOP, Command  # noqa: E402
+from app.flight.engagement import Decision, Engagement, VehicleState  # noqa: E402
+from app.flight.loop import LoopStats, control_loop  # noqa: E402
+from app.sim.px4 import SimPx4, SimState  # noqa: E402
 from hardware.px4 import FlightLinkError, Px4Link  # noqa: E402
-from hardware.sim_px4 import SimPx4, SimState  # noqa: E402
 from tests.conftest import free_udp_port, vehicle, wait_for  # noqa: E402
 
 
@@ -290,7 +290,7 @@ async def test_malformed_connection_url_is_a_clear_error() -> None:
 @pytest.mark.asyncio
 @pytest.mark.timeout(90)
 async def test_test_flight_takes_off_flies_forward_evades_holds_and_lands() -> None:
-    from app.testflight import TestFlight
+    from app.flight.testflight import TestFlight
 
     on_ground = SimState(armed=False, in_air=False, mode="position", pos_ned=[0.0, 0.0, 0.0])
     known = lambda v: v.mode == "position" and v.altitude_m is not None  # noqa: E731

@@ -16,9 +16,9 @@ from app.camera import CameraModel, Intrinsics  # noqa: E402
 from app.cli import main  # noqa: E402
 from app.config import CaptureConfig  # noqa: E402
 from app.errors import SourceError  # noqa: E402
-from app.perception import Frame  # noqa: E402
-from app.sources import open_source  # noqa: E402
-from app.synthetic import approach_scene, render  # noqa: E402
+from app.perception.frames import Frame  # noqa: E402
+from app.runtime.sources import open_source  # noqa: E402
+from app.sim.synthetic import approach_scene, render  # noqa: E402
 from hardware.realsense import CameraLost, RealSenseSource, write_realsense_recording  # noqa: E402
 
 # a D435i-like calibration: depth and colour lenses differ, 15 mm baseline, a slight rotation
@@ -144,9 +144,9 @@ def test_replay_reads_a_realsense_recording_and_decides(tmp_path: Path,
 
 def test_the_sdk_is_only_needed_for_realsense_sources() -> None:
     code = ("import sys; sys.modules['pyrealsense2'] = None\n"
-            "from app.sources import open_source\n"
+            "from app.runtime.sources import open_source\n"
             "from app.errors import SourceError\n"
-            "import app.runtime, app.cli\n"
+            "import app.runtime.process, app.cli\n"
             "from hardware.realsense import RealSenseSource\n"
             "from app.config import CaptureConfig\n"
             "try:\n    RealSenseSource(CaptureConfig())\nexcept SourceError as e:\n    print(e)\n")

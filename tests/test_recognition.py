@@ -6,7 +6,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from app.config import RecognitionConfig
-from app.recognition import SMALL_BLOB_COUNT, Recognizer, _components, _neighbour_groups, box_gaps, find_blobs
+from app.perception.recognition import (
+    SMALL_BLOB_COUNT,
+    Recognizer,
+    _components,
+    _neighbour_groups,
+    box_gaps,
+    find_blobs,
+)
 
 
 def _mask(*rects: tuple[int, int, int, int], shape: tuple[int, int] = (240, 320)) -> np.ndarray:

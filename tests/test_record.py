@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from app.config import Config, RecordConfig
-from app.perception import Frame
-from app.record import MB, FlightRecord, folder_size
-from app.sources import open_source
+from app.perception.frames import Frame
+from app.runtime.record import MB, FlightRecord, folder_size
+from app.runtime.sources import open_source
 
 RNG = np.random.default_rng(5)
 

@@ -10,10 +10,10 @@ import cv2
 import pytest
 
 from app.config import Config
-from app.evaluate import Clip, evaluate_clip, read_boxes, score
-from app.replay import run_replay
-from app.sources import open_source
-from app.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.runtime.sources import open_source
+from app.sim.synthetic import SyntheticObject, SyntheticScene, write_recording
+from app.tools.evaluate import Clip, evaluate_clip, read_boxes, score
+from app.tools.replay import run_replay
 
 # Two objects against the sky that never come within a gate of each other: every miss is
 # the method's own (warm-up, confirmation after noise_frames, the last frame's missing t+1).

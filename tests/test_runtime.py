@@ -25,13 +25,13 @@ pytest.importorskip("pymavlink")
 
 from app.cli import main  # noqa: E402
 from app.config import Config, RecordConfig  # noqa: E402
-from app.notify import Notifier  # noqa: E402
-from app.perception import Perception  # noqa: E402
-from app.record import FlightRecord  # noqa: E402
-from app.runtime import LatestSlot, fly  # noqa: E402
-from app.sources import open_source  # noqa: E402
-from app.synthetic import ball_scene, render, write_recording  # noqa: E402
-from hardware.sim_px4 import SimPx4, SimState  # noqa: E402
+from app.perception.pipeline import Perception  # noqa: E402
+from app.runtime.notify import Notifier  # noqa: E402
+from app.runtime.process import LatestSlot, fly  # noqa: E402
+from app.runtime.record import FlightRecord  # noqa: E402
+from app.runtime.sources import open_source  # noqa: E402
+from app.sim.px4 import SimPx4, SimState  # noqa: E402
+from app.sim.synthetic import ball_scene, render, write_recording  # noqa: E402
 from tests.conftest import free_udp_port, vehicle, wait_for  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -310,7 +310,7 @@ async def test_a_recording_played_twice_as_the_camera_gives_the_same_tracks_and_
 
 
 def test_the_synthetic_camera_throws_balls_until_stopped() -> None:
-    from app.synthetic import ThrowsSource
+    from app.sim.synthetic import ThrowsSource
 
     source = ThrowsSource(seed=3)
     source.CHUNK_FRAMES = 40  # cross chunk boundaries often

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from app.notify import Notifier
+from app.runtime.notify import Notifier
 
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = ROOT / "systemd" / "midair.service"

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from app.config import Config
-from app.world import Sphere, World, WorldStyle
+from app.sim.world import Sphere, World, WorldStyle
 
 pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
 
 from app.cli import main  # noqa: E402
-from app.simulate import Encounter, run_encounter  # noqa: E402
+from app.sim.simulate import Encounter, run_encounter  # noqa: E402
 
 
 def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -> None:
@@ -133,7 +133,7 @@ def test_simulate_against_an_autopilot_that_never_answers_exits_4(tmp_path: Path
 
 
 def test_wide_passes_are_reproducible_and_never_threats() -> None:
-    from app.campaign import WIDE_MISS_M, sample_encounters, wide_passes
+    from app.sim.campaign import WIDE_MISS_M, sample_encounters, wide_passes
 
     wide = wide_passes(20, 5)
     assert wide == wide_passes(20, 5)

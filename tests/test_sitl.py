@@ -1,7 +1,7 @@
 """The flight-link scenarios against a real PX4 SITL, opt-in: set MIDAIR_SITL_URL, e.g.
 ``udpin://0.0.0.0:14540`` with PX4's ``make px4_sitl sihsim_quadx`` running. Skipped
 otherwise (no PX4 SITL on the development machine or CI; the same scenarios run against
-hardware/sim_px4.py in test_flight_link.py).
+app/sim/px4.py in test_flight_link.py).
 
 Each test arms and takes off if needed, runs one scenario, and ends in Hold; the last one
 lands. What cannot be done to a SITL from here (cutting its radio link) stays with the
@@ -24,9 +24,9 @@ if URL:
     from mavsdk.asyncio.plugins.action import ActionAsync
 
     from app.config import FlightConfig
-    from app.decision import EVADE, NONE, Command
-    from app.engagement import Decision, Engagement
-    from app.flight import control_loop
+    from app.decision.policy import EVADE, NONE, Command
+    from app.flight.engagement import Decision, Engagement
+    from app.flight.loop import control_loop
     from hardware.px4 import Px4Link
 
 

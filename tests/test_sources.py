@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from app.errors import SourceError
-from app.sources import open_source
+from app.runtime.sources import open_source
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:

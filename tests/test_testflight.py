@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from app.config import FlightConfig
-from app.decision import EVADE, NONE, Command
-from app.engagement import ZERO, Decision, VehicleState
-from app.testflight import TestFlight
+from app.decision.policy import EVADE, NONE, Command
+from app.flight.engagement import ZERO, Decision, VehicleState
+from app.flight.testflight import TestFlight
 
 DT = 0.05
 CFG = FlightConfig(mode="test-flight", test_altitude_m=5.0, forward_speed_mps=2.0,

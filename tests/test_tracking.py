@@ -3,8 +3,8 @@ from __future__ import annotations
 import numpy as np
 
 from app.config import TrackingConfig
-from app.recognition import Cluster
-from app.tracking import Tracker
+from app.perception.recognition import Cluster
+from app.perception.tracking import Tracker
 
 FPS = 30.0
 

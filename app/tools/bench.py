@@ -17,8 +17,9 @@ import cv2
 import numpy as np
 
 from app.config import Config
-from app.perception import Frame, Perception, PerceptionResult
-from app.synthetic import SyntheticScene, render
+from app.perception.frames import Frame
+from app.perception.pipeline import Perception, PerceptionResult
+from app.sim.synthetic import SyntheticScene, render
 
 STAGES = ("detection_ms", "recognition_ms", "tracking_ms", "total_ms")
 # The variants take turns every this many frames (about 0.1 + 0.3 s here): the development VM's

@@ -349,11 +349,11 @@ class SimPx4:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m hardware.sim_px4 --port 14540``: a flying vehicle for desk runs of
+    """``python -m app.sim.px4 --port 14540``: a flying vehicle for desk runs of
     ``midair fly --connection udpin://0.0.0.0:14540``. Prints its mode changes."""
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m hardware.sim_px4", description=main.__doc__)
+    p = argparse.ArgumentParser(prog="python -m app.sim.px4", description=main.__doc__)
     p.add_argument("--port", type=int, default=14540, help="UDP port MAVSDK listens on")
     p.add_argument("--mode", default="position", choices=sorted(PX4_MODES), help="starting mode")
     p.add_argument("--landed", action="store_true", help="start disarmed on the ground")

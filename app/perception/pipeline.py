@@ -2,37 +2,17 @@
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
-from app.confidence import TrackConfidence
 from app.config import PerceptionConfig
-from app.detection import MotionDetector
-from app.recognition import Blobs, Cluster, Recognizer
-from app.tracking import Tracker, TrackReport
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One camera frame. Arrays are owned by the frame (never an SDK buffer)."""
-
-    index: int  # 1-based frame number in its source
-    t_s: float  # capture time, s (source clock; monotonic for live cameras): perception's time
-    color: np.ndarray  # (H, W, 3) uint8 BGR, or (H, W) uint8 grey
-    depth: np.ndarray | None = None  # (H', W') uint16 mm, 0 = no data
-    # when the flight process took the frame in (monotonic, s): a recording played as the
-    # camera keeps its own ``t_s`` for perception (same tracks on every playback) and gets
-    # this for latency and decision age; NaN for a live camera, whose ``t_s`` is monotonic
-    t_arrived_s: float = math.nan
-
-    @property
-    def t_monotonic_s(self) -> float:
-        """Monotonic time of the frame's capture (or arrival, for a played recording), s."""
-        return self.t_s if math.isnan(self.t_arrived_s) else self.t_arrived_s
+from app.perception.confidence import TrackConfidence
+from app.perception.detection import MotionDetector
+from app.perception.frames import Frame, to_grey
+from app.perception.recognition import Blobs, Cluster, Recognizer
+from app.perception.tracking import Tracker, TrackReport
 
 
 @dataclass
@@ -47,19 +27,6 @@ class PerceptionResult:
     tracks: list[TrackReport]  # every confirmed track, scored (``reported``: counted as an object)
     homography: np.ndarray | None  # H_{t-1,t}
     timings_ms: dict[str, float] = field(default_factory=dict)
-
-
-def to_grey(image: np.ndarray) -> np.ndarray:
-    """8-bit grey from an 8-bit BGR, BGRA or grey image."""
-    if image.ndim == 2:
-        return image
-    if image.ndim == 3 and image.shape[2] == 1:
-        return image[:, :, 0]
-    if image.ndim == 3 and image.shape[2] == 3:
-        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
-    raise ValueError(f"unsupported image shape {image.shape}")
 
 
 class Perception:

@@ -27,18 +27,18 @@ from typing import TextIO
 import cv2
 import numpy as np
 
-from app.annotate import annotate
 from app.camera import camera_from_config
 from app.config import Config
-from app.decision import Command, DecisionMaker
+from app.decision.policy import Command, DecisionMaker
 from app.errors import SourceError
-from app.perception import Perception, PerceptionResult
-from app.sources import FrameSource
+from app.perception.frames import FrameSource
+from app.perception.mot import MOT_HEADER, mot_row
+from app.perception.pipeline import Perception, PerceptionResult
+from app.tools.annotate import annotate
 
 log = logging.getLogger(__name__)
 
 TrackRow = tuple[int, int, float, float, float, float, float]  # frame, id, x, y, w, h px, confidence
-MOT_HEADER = ("frame", "id", "x", "y", "w", "h", "conf", "wx", "wy", "wz")
 
 
 @dataclass
@@ -142,12 +142,6 @@ def _open_writer(path: Path, fps: float, width: int, height: int) -> cv2.VideoWr
     if not writer.isOpened():
         raise SourceError(f"{path}: cannot open a video writer (mp4v)")
     return writer
-
-
-def mot_row(frame: int, tid: int, x: float, y: float, w: float, h: float,
-            conf: float = 1.0) -> list[object]:
-    """One MOT-challenge line: ``frame,id,x,y,w,h,conf,-1,-1,-1`` (box as given, px)."""
-    return [frame, tid, f"{x:.1f}", f"{y:.1f}", f"{w:.1f}", f"{h:.1f}", f"{conf:.3g}", -1, -1, -1]
 
 
 def write_tracks_csv(path: Path, rows: list[TrackRow]) -> None:

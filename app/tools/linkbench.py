@@ -4,7 +4,7 @@
 each with a distinct velocity, and measures on the vehicle's side when each first arrives:
 setpoint rate on the wire and the time from a decision to its setpoint on the wire.
 
-``midair bench --fly``: the whole flight process (:func:`app.runtime.fly`, with the flight
+``midair bench --fly``: the whole flight process (:func:`app.runtime.process.fly`, with the flight
 record on as in flight) on a generated recording at the camera's frame rate: frames kept
 up with, per-frame latency capture → perceived → decided → setpoint sent.
 """
@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from app.config import Config
-from app.decision import EVADE, Command
-from app.engagement import Decision, Engagement
+from app.decision.policy import EVADE, Command
 from app.errors import UsageError
-from app.flight import LoopStats, control_loop
+from app.flight.engagement import Decision, Engagement
+from app.flight.loop import LoopStats, control_loop
 
 
 async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
@@ -33,8 +33,8 @@ async def _connect_flying(link: Any, timeout_s: float = 10.0) -> None:
 
 async def _run(cfg: Config, seconds: float, decision_hz: float, rate_hz: float) -> dict[str, object]:
     try:
+        from app.sim.px4 import SimPx4, free_udp_port
         from hardware.px4 import Px4Link
-        from hardware.sim_px4 import SimPx4, free_udp_port
     except ImportError as exc:
         raise UsageError(f"bench --link needs the dev extra (pymavlink, mavsdk): {exc}") from None
     port = free_udp_port()
@@ -100,16 +100,16 @@ def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict
     import tempfile
     from pathlib import Path
 
-    from app.record import FlightRecord
-    from app.runtime import fly
-    from app.sources import open_source
-    from app.synthetic import approach_scene, write_recording
+    from app.runtime.process import fly
+    from app.runtime.record import FlightRecord
+    from app.runtime.sources import open_source
+    from app.sim.synthetic import approach_scene, write_recording
 
     if fps <= 0 or seconds < 2:
         raise UsageError("bench --fly needs --fps > 0 and --seconds >= 2")
     try:
+        from app.sim.px4 import free_udp_port  # the vehicle itself runs as its own process
         from hardware.px4 import Px4Link
-        from hardware.sim_px4 import free_udp_port  # the vehicle itself runs as its own process
     except ImportError as exc:
         raise UsageError(f"bench --fly needs the dev extra (pymavlink, mavsdk): {exc}") from None
 
@@ -119,7 +119,7 @@ def run_fly_bench(cfg: Config, fps: float = 60.0, seconds: float = 10.0) -> dict
                               source.camera).start()
         port = free_udp_port()
         # the vehicle in its own process, as PX4 is: it does not share our interpreter's lock
-        sim = subprocess.Popen([sys.executable, "-m", "hardware.sim_px4", "--port", str(port)],
+        sim = subprocess.Popen([sys.executable, "-m", "app.sim.px4", "--port", str(port)],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         link = Px4Link(f"udpin://0.0.0.0:{port}")
         try:

@@ -2,7 +2,7 @@
 
 Take off to ``test_altitude_m``, fly forward at ``forward_speed_mps`` in Offboard until an
 evasion is needed, evade, then hold; land when asked. Pure logic like
-:mod:`app.engagement`, with the same safety rules: setpoints stream before Offboard is
+:mod:`app.flight.engagement`, with the same safety rules: setpoints stream before Offboard is
 requested, every setpoint comes from a fresh decision (else zero, then Hold), any mode
 change by the pilot ends midair's part at once, the forward leg is bounded by
 ``test_max_cruise_s``, speeds are clamped to ``max_speed_mps``.
@@ -21,8 +21,8 @@ from __future__ import annotations
 import math
 
 from app.config import FlightConfig
-from app.decision import NONE, Command
-from app.engagement import ZERO, Decision, Output, VehicleState, clamp_velocity, status_text
+from app.decision.policy import NONE, Command
+from app.flight.engagement import ZERO, Decision, Output, VehicleState, clamp_velocity, status_text
 
 WARMUP_S = 1.2  # PX4 accepts Offboard after a second of setpoints (PX4 user guide)
 RETRY_S = 0.25

@@ -5,8 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from app.decision import Command, DecisionMaker, ObjectState
-from app.perception import PerceptionResult
+from app.decision.policy import Command, DecisionMaker, ObjectState
+from app.perception.pipeline import PerceptionResult
 
 MASK_COLOUR = (0, 0, 255)  # BGR: red outline of the motion mask
 CLUSTER_COLOUR = (0, 220, 255)  # yellow: recognised clusters

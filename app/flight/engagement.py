@@ -40,7 +40,7 @@ import math
 from dataclasses import dataclass
 
 from app.config import FlightConfig
-from app.decision import NONE, STOP, Command, describe_direction
+from app.decision.policy import NONE, STOP, Command, describe_direction
 
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
 ZERO = (0.0, 0.0, 0.0)

@@ -5,7 +5,7 @@ optionally ``depth/000001.png …`` (uint16 depth units, 0 = no data), ``frames.
 (``frame,t_s``: 1-based frame number and capture time in seconds) and ``intrinsics.json``
 (the colour and depth calibration, see :class:`app.camera.CameraModel`).
 
-Every source yields :class:`app.perception.Frame` with 8-bit BGR colour, whatever the
+Every source yields :class:`app.perception.pipeline.Frame` with 8-bit BGR colour, whatever the
 file held (grey, BGRA or 16-bit images are converted), and raises
 :class:`app.errors.SourceError` with the file's name when something cannot be read.
 """
@@ -22,46 +22,10 @@ import numpy as np
 from app.camera import CameraModel
 from app.config import CaptureConfig
 from app.errors import SourceError
-from app.perception import Frame
+from app.perception.frames import Frame, FrameSource, to_bgr8
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp"}
 DEFAULT_FPS = 30.0  # assumed for image folders without frames.csv
-
-
-def to_bgr8(image: np.ndarray, name: str) -> np.ndarray:
-    """Normalise a decoded image to 8-bit BGR (H, W, 3)."""
-    if image.dtype == np.uint16:
-        image = (image >> 8).astype(np.uint8)
-    elif image.dtype != np.uint8:
-        raise SourceError(f"{name}: unsupported pixel type {image.dtype}")
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    if image.ndim == 3 and image.shape[2] == 1:
-        return cv2.cvtColor(image[:, :, 0], cv2.COLOR_GRAY2BGR)
-    if image.ndim == 3 and image.shape[2] == 4:
-        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    if image.ndim == 3 and image.shape[2] == 3:
-        return image
-    raise SourceError(f"{name}: unsupported image shape {image.shape}")
-
-
-class FrameSource:
-    """Iterable of frames with what replay needs to know up front."""
-
-    name: str
-    fps: float
-    has_depth: bool = False
-    camera: CameraModel | None = None  # calibration that came with the source, if any
-    live: bool = False  # a live camera: frames stamped on the monotonic clock, never paced
-
-    def close(self) -> None:
-        """Release the device or files (a no-op for sources that hold nothing open)."""
-
-    def __iter__(self) -> Iterator[Frame]:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    def __len__(self) -> int:  # pragma: no cover - interface
-        raise NotImplementedError
 
 
 class VideoSource(FrameSource):

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.camera import CameraModel
-from app.recognition import Cluster
+from app.perception.recognition import Cluster
 
 
 @dataclass(frozen=True)

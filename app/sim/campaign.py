@@ -1,6 +1,6 @@
 """Campaigns of closed-loop encounters: sampling, a process pool, the report and its plots.
 
-Each encounter is a pure function of (configuration, :class:`app.simulate.Encounter`), and
+Each encounter is a pure function of (configuration, :class:`app.sim.simulate.Encounter`), and
 every encounter carries its own seed, so the sample is reproducible from the campaign seed
 and the runs can go to any pool: a local process pool here (each encounter runs in real
 time, so the pool's size is bounded by the cores that keep perception on time), or a
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from app.config import Config
-from app.simulate import Encounter, EncounterResult, run_encounter
+from app.sim.simulate import Encounter, EncounterResult, run_encounter
 
 SPEED_BINS = (2.0, 4.0, 6.0, 8.0, 10.0, 14.0)  # m/s
 ANGLE_BINS = (0.0, 10.0, 20.0, 30.0)  # |approach| deg; the colour lens sees +-27.5 deg

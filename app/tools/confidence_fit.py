@@ -1,8 +1,8 @@
-"""Fitting the track confidence (app/confidence.py) on clips with ground truth.
+"""Fitting the track confidence (app/perception/confidence.py) on clips with ground truth.
 
 ``midair fit-confidence DATA``: every clip is replayed once; each confirmed track in each
 frame becomes one example — its features, and whether its centre lies within the
-evaluation gate of a labelled object (the matching rule of app/evaluate.py). A logistic
+evaluation gate of a labelled object (the matching rule of app/tools/evaluate.py). A logistic
 regression (Newton's method, a small L2 penalty, no extra dependency) is fitted on all of
 them. Because the confidence only decides what is *reported* and never feeds back into the
 stages, the features do not depend on the weights: the same examples also give an honest
@@ -19,11 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.confidence import FEATURES
 from app.config import Config
-from app.evaluate import GATE_PX, GATE_SCALE, Clip, read_boxes, score
-from app.perception import Perception
-from app.sources import open_source
+from app.perception.confidence import FEATURES
+from app.perception.pipeline import Perception
+from app.runtime.sources import open_source
+from app.tools.evaluate import GATE_PX, GATE_SCALE, Clip, read_boxes, score
 
 L2 = 1e-5  # ridge penalty per example on the standardised weights (keeps separable data finite)
 

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from app.config import ConfidenceConfig
-from app.tracking import TrackReport
+from app.perception.tracking import TrackReport
 
 FEATURES = ("matched", "log_hits", "ring_gradient", "ring_std", "straightness", "match_fraction",
             "elongation", "fill", "bottom_edge")

@@ -26,7 +26,7 @@ from filterpy.kalman import KalmanFilter
 from scipy.optimize import linear_sum_assignment
 
 from app.config import TrackingConfig
-from app.recognition import Cluster
+from app.perception.recognition import Cluster
 
 TRAIL_LEN = 30  # positions kept per track for drawing, frames
 
@@ -66,8 +66,8 @@ class TrackReport:
     hits: int
     cluster: Cluster | None
     trail: tuple[tuple[float, float], ...]
-    confidence: float = 1.0  # 0-1, from app.confidence (1 until scored)
-    features: tuple[float, ...] = ()  # what the confidence was computed from (app.confidence)
+    confidence: float = 1.0  # 0-1, from app.perception.confidence (1 until scored)
+    features: tuple[float, ...] = ()  # what the confidence was computed from (app.perception.confidence)
     reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
 
     def scored(self, confidence: float, features: tuple[float, ...], reported: bool) -> TrackReport:

@@ -28,14 +28,14 @@ import numpy as np
 
 from app.camera import camera_from_config
 from app.config import Config
-from app.decision import DecisionMaker
-from app.engagement import Decision, Engagement, Output, VehicleState
-from app.flight import Controller, FlightLink, LoopStats, control_loop
-from app.notify import Notifier
-from app.perception import Frame, Perception
-from app.record import FlightRecord
-from app.sources import FrameSource
-from app.testflight import TestFlight
+from app.decision.policy import DecisionMaker
+from app.flight.engagement import Decision, Engagement, Output, VehicleState
+from app.flight.loop import Controller, FlightLink, LoopStats, control_loop
+from app.flight.testflight import TestFlight
+from app.perception.frames import Frame, FrameSource
+from app.perception.pipeline import Perception
+from app.runtime.notify import Notifier
+from app.runtime.record import FlightRecord
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")

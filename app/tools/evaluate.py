@@ -24,8 +24,8 @@ import numpy as np
 
 from app.config import Config
 from app.errors import SourceError, UserError
-from app.replay import TrackRow, run_replay
-from app.sources import open_source
+from app.runtime.sources import open_source
+from app.tools.replay import TrackRow, run_replay
 
 log = logging.getLogger(__name__)
 

@@ -21,8 +21,7 @@ import cv2
 import numpy as np
 
 from app.camera import CameraModel, Intrinsics
-from app.perception import Frame
-from app.sources import FrameSource
+from app.perception.frames import Frame, FrameSource
 
 
 @dataclass(frozen=True)

@@ -38,8 +38,8 @@ from filterpy.kalman import KalmanFilter
 
 from app.camera import CameraModel
 from app.config import DecisionConfig, avoid_distance_m
-from app.depth import object_depth
-from app.tracking import TrackReport
+from app.decision.depth import object_depth
+from app.perception.tracking import TrackReport
 
 NONE, EVADE, STOP = "none", "evade", "emergency_stop"
 

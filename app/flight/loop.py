@@ -2,7 +2,7 @@
 
 The link is anything with ``snapshot() -> VehicleState`` and ``async apply(Output)``
 (:class:`hardware.px4.Px4Link` for PX4 through MAVSDK). Decisions come from a callable
-returning the newest :class:`app.engagement.Decision` (a latest-value slot: never a queue).
+returning the newest :class:`app.flight.engagement.Decision` (a latest-value slot: never a queue).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from app.engagement import Decision, Output, VehicleState
+from app.flight.engagement import Decision, Output, VehicleState
 
 
 class FlightLink(Protocol):
@@ -25,7 +25,8 @@ class FlightLink(Protocol):
 
 
 class Controller(Protocol):
-    """:class:`app.engagement.Engagement` (guard, shadow) or :class:`app.testflight.TestFlight`."""
+    """:class:`app.flight.engagement.Engagement` (guard, shadow) or
+    :class:`app.flight.testflight.TestFlight`."""
 
     @property
     def in_control(self) -> bool: ...

@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 
 from app.config import Config
-from app.perception import Frame
-from app.sources import FrameSource
-from app.world import Sphere, World, WorldStyle
+from app.perception.frames import Frame, FrameSource
+from app.sim.world import Sphere, World, WorldStyle
 
 VEHICLE_RADIUS_M = 0.25  # a 250-size quadrotor with props: ~0.5 m across
 SAFETY_MARGIN_M = 0.2  # separation beyond the two radii that counts as a clean miss
@@ -185,10 +184,10 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
                      connection: str | None, pose_from_telemetry: bool) -> EncounterResult:
     import tempfile
 
-    from app.record import FlightRecord
-    from app.runtime import fly
+    from app.runtime.process import fly
+    from app.runtime.record import FlightRecord
+    from app.sim.px4 import SimPx4, SimState, free_udp_port
     from hardware.px4 import Px4Link
-    from hardware.sim_px4 import SimPx4, SimState, free_udp_port
 
     wall0 = time.monotonic()
     sim = None

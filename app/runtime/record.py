@@ -43,8 +43,8 @@ import numpy as np
 from app import __version__
 from app.camera import CameraModel
 from app.config import Config, RecordConfig, to_yaml
-from app.perception import Frame
-from app.replay import MOT_HEADER, mot_row
+from app.perception.frames import Frame
+from app.perception.mot import MOT_HEADER, mot_row
 
 log = logging.getLogger(__name__)
 
