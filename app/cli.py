@@ -120,7 +120,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="also fly N encounters whose object misses by 2-4 m (unnecessary evasions)")
     m.add_argument("--workers", type=int, help="processes for a campaign (default: half the cores; "
                    "encounters run in real time)")
-    m.add_argument("--trigger", choices=("distance", "ttc"), help="override decision.trigger")
+    m.add_argument("--trigger", choices=("distance", "ttc", "response"), help="override decision.trigger")
     m.add_argument("--connection", metavar="URL", help="single encounter against a PX4 SITL that "
                    "is already flying (e.g. udpin://0.0.0.0:14540): the camera renders from its "
                    "telemetry pose; default: the stand-in vehicle, started here")

@@ -327,7 +327,8 @@ class DecisionConfig:
 
     min_range_m: float = param(0.2, "depth below this is no data (D435i min-Z), m", gt=0)
     max_range_m: float = param(
-        10.0, "depth beyond this is not trusted (D435i useful range, paper §4-D), m", gt=0
+        16.0, "depth beyond this is not used; nearer, its error is modelled as growing with z² "
+        "(depth_rms_per_m2; the paper stops at the D435i's ~10 m), m", gt=0
     )
     depth_percentile: float = param(
         25.0, "percentile of the blob's depth pixels taken as its distance", ge=0, le=100
@@ -361,11 +362,49 @@ class DecisionConfig:
         2.0, "below this (or with altitude unknown) never command a downward component, m", ge=0
     )
     trigger: str = param(
-        "ttc",
-        "ttc: also evade when time-to-collision is short, judging the window where the object "
-        "will cross (chosen by simulation campaigns, README); distance: the paper's fixed "
-        "thresholds only",
-        choices=("distance", "ttc"),
+        "response",
+        "response: evade when the predicted time to the closest approach falls to what the "
+        "vehicle needs to move clear (response_*) plus trigger_margin_s, from the image's "
+        "looming before depth and fused with depth after; ttc: evade when the depth track's "
+        "time-to-collision is under ttc_avoid_s; distance: the paper's fixed thresholds only",
+        choices=("distance", "ttc", "response"),
+    )
+    vehicle_radius_m: float = param(
+        0.25, "the vehicle's radius with its propellers (a 450 mm quad: 0.25), m", gt=0
+    )
+    clearance_margin_m: float = param(
+        0.2, "response trigger: pass the object with this much air between the two, m", ge=0
+    )
+    trigger_margin_s: float = param(
+        0.3, "response trigger: start this much earlier than the vehicle's need, s", ge=0
+    )
+    object_diameter_min_m: float = param(
+        0.15, "smallest plausible object (a small bird, a ball), m: turns the image's miss in "
+        "object sizes into metres until depth gives the range", gt=0,
+    )
+    object_diameter_max_m: float = param(
+        1.0, "largest plausible object (a large drone, a big bird), m", gt=0
+    )
+    passage_sigmas: float = param(
+        1.0, "the predicted passage is judged this many standard errors towards the vehicle "
+        "(worst case over the estimate's uncertainty)", ge=0,
+    )
+    looming_window_s: float = param(
+        0.4, "image estimate: ln(size) and bearing are fitted over this window, s", gt=0
+    )
+    looming_min_samples: int = param(6, "image estimate: fewest matched frames in the window", ge=3)
+    response_dead_time_s: float = param(
+        0.15, "vehicle response: time before a command starts to move the vehicle (PX4 SITL "
+        "SIH: 0.13-0.23 s, docs/sitl.md), s", ge=0,
+    )
+    response_lag_s: float = param(
+        0.79, "vehicle response: first-order time constant of the velocity (PX4 SITL SIH: 2 m/s "
+        "commanded reached 1 m/s after ~0.7 s, docs/sitl.md), s", gt=0,
+    )
+    response_accel_mps2: float = param(
+        4.0, "vehicle response: acceleration limit (PX4 MPC_ACC_HOR_MAX, hardware/px4-companion.params), "
+        "m/s²",
+        gt=0,
     )
     ttc_avoid_s: float = param(
         1.5, "with trigger ttc: evade when time-to-collision < this (campaigns: 1.5 s beat 1.0 s), s",
@@ -607,6 +646,9 @@ def check_consistency(cfg: Config) -> None:
     if dc.min_range_m >= dc.max_range_m:
         raise ConfigError(f"decision.min_range_m = {dc.min_range_m:g}: must be < max_range_m "
                           f"({dc.max_range_m:g})")
+    if dc.object_diameter_min_m > dc.object_diameter_max_m:
+        raise ConfigError(f"decision.object_diameter_min_m = {dc.object_diameter_min_m:g}: must be "
+                          f"<= object_diameter_max_m ({dc.object_diameter_max_m:g})")
     if dc.evade_speed_mps > dc.max_speed_mps:
         raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
                           f"max_speed_mps ({dc.max_speed_mps:g})")

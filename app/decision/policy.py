@@ -29,6 +29,7 @@ Rules, in order of precedence:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -39,9 +40,13 @@ from filterpy.kalman import KalmanFilter
 from app.camera import CameraModel
 from app.config import DecisionConfig, avoid_distance_m
 from app.decision.depth import object_depth
+from app.decision.looming import ImageEstimate, LoomingEstimator
+from app.decision.response import ResponseModel
 from app.perception.tracking import TrackReport
 
 NONE, EVADE, STOP = "none", "evade", "emergency_stop"
+# trigger: response acts on a time to the passage known to within this fraction (1 std)
+MAX_TAU_REL_STD = 0.3
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,28 @@ class ObjectState:
     ttc_s: float | None  # Z / closing speed, when closing
     # where it will cross the camera plane (X, Y at Z = 0) on its current course, when closing
     crossing_m: tuple[float, float] | None = None
+    # the predicted passage (trigger: response), from the image, the depth track or both
+    source: str = "depth"  # image | depth | fused
+    tau_s: float | None = None  # time to the passage (camera plane), s
+    tau_std_s: float | None = None
+    miss_sizes: tuple[float, float] | None = None  # passage (X, Y at Z = 0), object diameters
+    miss_sizes_std: float | None = None
+    diameter_m: float | None = None  # known once depth gives the range (Z x angular size), m
+    seen_s: float = -math.inf  # newest frame the object was matched in (image or depth), s
+    reported: bool = True  # perception's confidence reports it as an object (not clutter)
+
+    def passages(self, d_min: float, d_max: float) -> list[tuple[float, tuple[float, float], float]]:
+        """The passage for each plausible size: (diameter m, miss vector m, its std m). With
+        depth the size is known; else the configured range's two ends (the miss and the
+        clearance are both linear in the size, so the worst case lies at one of them)."""
+        if self.miss_sizes is None:
+            if self.crossing_m is None:
+                return []
+            std = 0.5 if self.tau_std_s is None else 0.5
+            return [(self.diameter_m or d_min, self.crossing_m, std)]
+        sizes = [self.diameter_m] if self.diameter_m is not None else [d_min, d_max]
+        ms = self.miss_sizes_std or 0.0
+        return [(d, (self.miss_sizes[0] * d, self.miss_sizes[1] * d), ms * d) for d in sizes]
 
     @property
     def z_m(self) -> float:
@@ -110,14 +137,26 @@ def closes_on(direction: tuple[float, float], x: float, y: float) -> bool:
 class _Track3D:
     """Constant-velocity Kalman filter over colour-camera XYZ; state [X, vX, Y, vY, Z, vZ]."""
 
-    def __init__(self, xyz: tuple[float, float, float], t_s: float, cfg: DecisionConfig) -> None:
+    def __init__(self, xyz: tuple[float, float, float], t_s: float, cfg: DecisionConfig,
+                 image: ImageEstimate | None = None) -> None:
         self.cfg = cfg
         kf = KalmanFilter(dim_x=6, dim_z=3)
-        kf.x = np.array([[xyz[0]], [0.0], [xyz[1]], [0.0], [xyz[2]], [0.0]])
+        vel0 = (0.0, 0.0, 0.0)
+        pos, vel = (2 * cfg.kalman_measurement_std_m) ** 2, cfg.kalman_initial_speed_std_mps**2
+        var_v = [vel, vel, vel]
+        if image is not None and image.tau_s is not None and image.tau_s > 0:
+            # Start from what the image already knows, not from rest: closing speed Z/τ,
+            # lateral speed from the bearing rate (d(bZ)/dt = b'Z + bZ').
+            z = xyz[2]
+            vz = -z / image.tau_s
+            vel0 = (image.bearing_rate[0] * z + image.bearing[0] * vz,
+                    image.bearing_rate[1] * z + image.bearing[1] * vz, vz)
+            sz = z * (image.tau_std_s or 0.0) / image.tau_s**2
+            var_v = [vel, vel, max(sz, 0.3) ** 2]
+        kf.x = np.array([[xyz[0]], [vel0[0]], [xyz[1]], [vel0[1]], [xyz[2]], [vel0[2]]])
         kf.H = np.zeros((3, 6))
         kf.H[0, 0] = kf.H[1, 2] = kf.H[2, 4] = 1.0
-        pos, vel = (2 * cfg.kalman_measurement_std_m) ** 2, cfg.kalman_initial_speed_std_mps**2
-        kf.P = np.diag([pos, vel, pos, vel, pos, vel])
+        kf.P = np.diag([pos, var_v[0], pos, var_v[1], pos, var_v[2]])
         self.kf = kf
         self.t_s = t_s
         self.measured_s = t_s
@@ -145,8 +184,13 @@ class _Track3D:
         z = float(x[4])
         ttc = z / closing if closing > 0.05 and z > 0 else None
         crossing = None if ttc is None else (float(x[0] + x[1] * ttc), float(x[2] + x[3] * ttc))
+        tau_std = None
+        if ttc is not None:
+            pz, pv = float(self.kf.P[4, 4]), float(self.kf.P[5, 5])
+            tau_std = math.sqrt(pz / closing**2 + (z / closing**2) ** 2 * pv)
         return ObjectState(track_id, (float(x[0]), float(x[2]), z), self.measured_s,
-                           t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc, crossing)
+                           t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc, crossing,
+                           tau_s=ttc, tau_std_s=tau_std, seen_s=self.measured_s)
 
 
 class DecisionMaker:
@@ -160,26 +204,57 @@ class DecisionMaker:
         Colour/depth calibration for the colour → depth pixel correspondence.
     """
 
-    def __init__(self, cfg: DecisionConfig, camera: CameraModel) -> None:
+    def __init__(self, cfg: DecisionConfig, camera: CameraModel, mask_growth_px: float = 0.0) -> None:
         self.cfg = cfg
         self.camera = camera
+        self.mask_growth_px = mask_growth_px  # what the motion mask's dilation adds to a blob, px
         self.avoid_m = avoid_distance_m(cfg)
         self._tracks: dict[int, _Track3D] = {}
+        self._looming: dict[int, LoomingEstimator] = {}
+        self._seen: dict[int, float] = {}
         self._engaged: _Engagement | None = None
+        self.response = ResponseModel(cfg.response_dead_time_s, cfg.response_lag_s,
+                                      cfg.response_accel_mps2, min(cfg.evade_speed_mps, cfg.max_speed_mps))
 
     def reset(self) -> None:
         self._tracks.clear()
+        self._looming.clear()
+        self._seen.clear()
         self._engaged = None
 
     # ------------------------------------------------------------------ measurement
 
-    def observe(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float) -> list[ObjectState]:
-        """Update the 3-D tracks from this frame's depth; return every known object."""
+    def observe(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
+                derotation: np.ndarray | None = None) -> list[ObjectState]:
+        """Update the image estimates and the 3-D tracks from this frame; return every known
+        object: measured in depth, or seen in the image only.
+
+        ``derotation`` is K·R·K⁻¹ of the camera's *rotation* since the last frame (from the
+        vehicle's attitude or the D435i's gyro), which carries the image history through
+        it. Not the background's homography: that also holds the parallax of our own
+        translation against near ground, which is real relative motion towards or away
+        from the object (carried through it, a climbing vehicle saw an object passing
+        below it as passing above, and turned back into its path: closed loop, seen)."""
         c = self.cfg
         alive = {t.track_id for t in tracks}
-        for tid in list(self._tracks):
-            if tid not in alive:
-                del self._tracks[tid]
+        for store in (self._tracks, self._looming, self._seen):
+            for tid in [k for k in store if k not in alive]:
+                del store[tid]
+        images: dict[int, ImageEstimate] = {}
+        for t in tracks:
+            est = self._looming.get(t.track_id)
+            if est is None:
+                est = self._looming[t.track_id] = LoomingEstimator(
+                    self.camera.color, c.looming_window_s, c.looming_min_samples,
+                    size_bias_px=self.mask_growth_px)
+            else:
+                est.carry(derotation)
+            if t.matched and t.cluster is not None:
+                est.add(t_s, tuple(float(v) for v in t.cluster.box))  # type: ignore[arg-type]
+                self._seen[t.track_id] = t_s
+            image = est.estimate(t_s)
+            if image is not None:
+                images[t.track_id] = image
         for t in tracks:
             meas = None
             if (depth is not None and t.matched and t.cluster is not None
@@ -189,13 +264,51 @@ class DecisionMaker:
             tr = self._tracks.get(t.track_id)
             if meas is not None and all(math.isfinite(v) for v in meas.xyz_m):
                 if tr is None:
-                    self._tracks[t.track_id] = _Track3D(meas.xyz_m, t_s, c)
+                    self._tracks[t.track_id] = _Track3D(meas.xyz_m, t_s, c, images.get(t.track_id))
                 else:
                     tr.advance(t_s)
                     tr.update(meas.xyz_m, t_s)
             elif tr is not None:
                 tr.advance(t_s)
-        return [tr.state(tid, t_s) for tid, tr in self._tracks.items()]
+        out = []
+        for t in tracks:
+            tid = t.track_id
+            tr = self._tracks.get(tid)
+            image = images.get(tid)
+            if tr is not None:
+                out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image, tid),
+                                               reported=t.reported))
+            elif image is not None:
+                out.append(dataclasses.replace(self._image_only(tid, image, t_s), reported=t.reported))
+        return out
+
+    def _image_only(self, tid: int, e: ImageEstimate, t_s: float) -> ObjectState:
+        """An object seen in the colour image only: placed at the range of the smallest
+        plausible size (the nearest it can be); never 'fresh' (no measured distance)."""
+        z = e.range_m(self.cfg.object_diameter_min_m)
+        xyz = (e.bearing[0] * z, e.bearing[1] * z, z)
+        closing = z / e.tau_s if e.tau_s is not None and e.tau_s > 0 else 0.0
+        return ObjectState(tid, xyz, -math.inf, False, closing, None, None, source="image",
+                           tau_s=e.tau_s, tau_std_s=e.tau_std_s, miss_sizes=e.miss_sizes,
+                           miss_sizes_std=e.miss_sizes_std, seen_s=self._seen.get(tid, -math.inf))
+
+    def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
+        """The depth track's state with the image's looming: time to the passage by inverse
+        variance of the two, the passage from the image's bearing rate scaled by the size the
+        range gives (a depth velocity is too noisy at range to aim by)."""
+        if e is None or not o.fresh:
+            return dataclasses.replace(o, seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
+        tau, tau_std = o.tau_s, o.tau_std_s
+        if e.tau_s is not None and e.tau_std_s is not None:
+            # Looming's τ, not the depth track's: the depth velocity starts from rest (or
+            # from the image) and its error is biased, not only noisy, for its first frames
+            # (an inverse-variance blend pulled τ 0.2-0.4 s late in the closed loop).
+            tau, tau_std = e.tau_s, e.tau_std_s
+        diameter = o.z_m * e.size_rad if o.z_m > 0 else None
+        return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
+                                   miss_sizes=e.miss_sizes, miss_sizes_std=e.miss_sizes_std,
+                                   diameter_m=diameter,
+                                   seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
 
     # ------------------------------------------------------------------ policy
 
@@ -264,9 +377,136 @@ class DecisionMaker:
                        reason=f"object {primary.track_id} at {primary.z_m:.2f} m, lateral "
                               f"{primary.lateral_m:.2f} m: evade {describe_direction(direction)}")
 
+    # ------------------------------------------------------------------ policy: response
+
+    def assess(self, o: ObjectState) -> tuple[float, float] | None:
+        """(time to the passage, time the vehicle needs to clear it) for an object on its
+        way in, or None when it is not (no looming, passed, or it passes wide of every
+        plausible size). The need is the response model's time to move the clearance
+        (vehicle + object radius + margin) less the worst-case miss (``passage_sigmas``
+        standard errors towards the vehicle), straight away from the passage."""
+        c = self.cfg
+        if o.tau_s is None or o.tau_s <= 0:
+            return None
+        if o.source == "image" and not o.reported:
+            return None  # no range and perception calls it clutter: the image alone won't do
+        if o.tau_std_s is None or o.tau_std_s > MAX_TAU_REL_STD * o.tau_s:
+            return None  # too unsure when (a young depth track's velocity): not yet
+        need_m = -math.inf
+        for d, miss, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
+            clearance = c.vehicle_radius_m + d / 2 + c.clearance_margin_m
+            worst = max(0.0, math.hypot(*miss) - c.passage_sigmas * std)
+            need_m = max(need_m, clearance - worst)
+        if need_m <= 0:
+            return None
+        # the time left, judged early by the estimate's uncertainty
+        tau = o.tau_s - c.passage_sigmas * (o.tau_std_s or 0.0)
+        return max(0.0, tau), self.response.time_to_move_s(need_m)
+
+    def decide_response(self, objects: list[ObjectState], t_s: float, altitude_m: float | None) -> Command:
+        """``trigger: response``: evade each object whose predicted passage is inside its
+        clearance once the time left falls to the vehicle's need plus ``trigger_margin_s``;
+        the direction maximises the worst-case miss over every such threat."""
+        c = self.cfg
+        fresh = [o for o in objects if o.fresh and math.isfinite(o.z_m) and o.z_m > 0]
+        by_id = {o.track_id: o for o in objects}
+        can_descend = altitude_m is not None and math.isfinite(altitude_m) and altitude_m >= c.min_altitude_m
+        evading = self._engaged.object_id if self._engaged and self._engaged.kind == EVADE else None
+
+        # 1. Emergency stop, as the paper's (an object first measured this close).
+        close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
+        if close:
+            near = min(close, key=lambda o: o.z_m)
+            self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
+            return Command(STOP, object_id=near.track_id,
+                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
+                                  f"{c.emergency_m:g} m")
+        if self._engaged is not None and self._engaged.kind == STOP:
+            held = by_id.get(self._engaged.object_id)
+            if (held is not None and t_s - held.seen_s <= c.max_hold_s
+                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
+                return Command(STOP, object_id=held.track_id,
+                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
+            self._engaged = None
+
+        # 2. Threats: time left down to the need (+ margin); the paper's distance rule too.
+        threats: list[tuple[ObjectState, str]] = []
+        for o in objects:
+            a = self.assess(o)
+            if a is not None and a[0] <= a[1] + c.trigger_margin_s:
+                threats.append((o, f"tau {a[0]:.2f} s <= need {a[1]:.2f} + {c.trigger_margin_s:g} s "
+                                   f"({o.source})"))
+            elif o in fresh and o.lateral_m < c.safe_window_m and o.z_m < self.avoid_m:
+                threats.append((o, f"at {o.z_m:.2f} m < {self.avoid_m:g} m, lateral {o.lateral_m:.2f} m"))
+        threats.sort(key=lambda ot: ot[0].tau_s if ot[0].tau_s is not None else ot[0].z_m)
+
+        # 3. A running evasion lasts until its object has passed or is lost.
+        eng = self._engaged
+        if eng is not None:
+            cur = by_id.get(eng.object_id)
+            passed = cur is not None and ((cur.tau_s is not None and cur.tau_s < -0.1)
+                                          or (cur.source != "image" and cur.z_m <= 0))
+            if cur is None or passed or t_s - cur.seen_s > c.max_hold_s:
+                self._engaged = eng = None
+            elif eng.object_id not in {o.track_id for o, _ in threats}:
+                threats.insert(0, (cur, "evading until it has passed"))
+        if not threats:
+            return Command(NONE)
+
+        primary, why = threats[0]
+        direction = self._escape([o for o, _ in threats], eng.direction if eng else None, can_descend)
+        if direction is None:
+            self._engaged = None
+            ids = ", ".join(str(o.track_id) for o, _ in threats)
+            return Command(STOP, object_id=primary.track_id,
+                           reason=f"no escape direction clears objects {ids}: stop")
+        self._engaged = _Engagement(EVADE, eng.object_id if eng else primary.track_id, direction)
+        speed = min(c.evade_speed_mps, c.max_speed_mps)
+        return Command(EVADE, 0.0, direction[0] * speed, direction[1] * speed, self._engaged.object_id,
+                       reason=f"object {primary.track_id} {why}: evade {describe_direction(direction)}")
+
+    def _escape(self, threats: list[ObjectState], latched: tuple[float, float] | None,
+                can_descend: bool) -> tuple[float, float] | None:
+        """The direction (right, down) that maximises the worst-case miss at each threat's
+        passage, over its plausible sizes and ``passage_sigmas`` of its uncertainty, never
+        one that moves towards a threat's predicted passage (beyond that uncertainty). A
+        latched direction is kept until it would move towards a passage beyond that
+        uncertainty (the prediction flipped with confidence)."""
+        c = self.cfg
+        k = c.passage_sigmas
+
+        def towards(d: tuple[float, float], o: ObjectState) -> bool:
+            return any(d[0] * m[0] + d[1] * m[1] > k * std + 1e-9
+                       for _, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m))
+
+        def allowed(d: tuple[float, float]) -> bool:
+            return (can_descend or d[1] <= 0) and not any(towards(d, o) for o in threats)
+
+        if latched is not None and allowed(latched):
+            return latched  # changes only once it moves towards a passage beyond the doubt
+
+        def score(d: tuple[float, float]) -> float:
+            worst = math.inf
+            for o in threats:
+                s = self.response.displacement_m(max(0.0, o.tau_s or 0.0))
+                for size, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
+                    clearance = c.vehicle_radius_m + size / 2 + c.clearance_margin_m
+                    miss = math.hypot(m[0] - s * d[0], m[1] - s * d[1]) - k * std
+                    worst = min(worst, miss - clearance)
+            return worst
+
+        options = [d for d in _DIRECTIONS if allowed(d)]
+        if not options:
+            return None
+        # ties (a head-on course: every direction buys the same) go to the paper's order
+        return max(options, key=lambda d: (round(score(d), 3), -_DIRECTIONS.index(d)))
+
     def step(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
-             altitude_m: float | None) -> tuple[Command, list[ObjectState]]:
-        objects = self.observe(tracks, depth, t_s)
+             altitude_m: float | None, derotation: np.ndarray | None = None
+             ) -> tuple[Command, list[ObjectState]]:
+        objects = self.observe(tracks, depth, t_s, derotation)
+        if self.cfg.trigger == "response":
+            return self.decide_response(objects, t_s, altitude_m), objects
         return self.decide(objects, t_s, altitude_m), objects
 
     # ------------------------------------------------------------------ helpers
@@ -322,6 +562,17 @@ class DecisionMaker:
             if not any(closes_on(d, *self._aim(t)) for t in vetoes):
                 return d
         return None
+
+
+def passage_fields(o: ObjectState) -> dict[str, object]:
+    """The predicted passage of one object, for the flight record: its source (image, depth,
+    fused), time to it, and where (m: the known size, or the range of plausible ones)."""
+    def r(v: float | None, n: int = 3) -> float | None:
+        return None if v is None or not math.isfinite(v) else round(v, n)
+
+    return {"source": o.source, "tau_s": r(o.tau_s), "tau_std_s": r(o.tau_std_s),
+            "miss_sizes": None if o.miss_sizes is None else [r(v, 2) for v in o.miss_sizes],
+            "miss_sizes_std": r(o.miss_sizes_std, 2), "diameter_m": r(o.diameter_m)}
 
 
 def describe_direction(d: tuple[float, float]) -> str:

@@ -28,7 +28,7 @@ import numpy as np
 
 from app.camera import camera_from_config
 from app.config import Config
-from app.decision.policy import DecisionMaker
+from app.decision.policy import DecisionMaker, passage_fields
 from app.flight.engagement import Decision, Engagement, Output, VehicleState
 from app.flight.loop import Controller, FlightLink, LoopStats, control_loop
 from app.flight.testflight import TestFlight
@@ -272,7 +272,8 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                 objs: list[dict[str, object]] = [] if record is None else [  # for the record only
                     {"id": o.track_id, "xyz_m": [round(c, 3) for c in o.xyz_m],
                      "closing_mps": round(o.closing_mps, 2),
-                     "ttc_s": None if o.ttc_s is None else round(o.ttc_s, 3)} for o in objects]
+                     "ttc_s": None if o.ttc_s is None else round(o.ttc_s, 3),
+                     **passage_fields(o)} for o in objects]
                 d = Decision(command, result.frame.t_monotonic_s, result.frame.index, t_perceived,
                              t_decided, t_start)
                 return _Worked(d, boxes, result.frame.index, objs)
@@ -364,7 +365,8 @@ async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_sig
     decisions: LatestSlot[Decision] = LatestSlot()
     stop, wake = asyncio.Event(), asyncio.Event()
     stats = RunStats(frame_interval_ms=1000.0 / source.fps if source.fps > 0 else math.nan)
-    decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera))
+    decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera),
+                              mask_growth_px=cfg.perception.detection.dilate_ksize - 1)
     controller: Controller
     if cfg.flight.mode == "test-flight":
         tf = TestFlight(cfg.flight, cfg.decision.max_speed_mps)

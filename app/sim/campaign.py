@@ -44,13 +44,13 @@ def sample_encounters(n: int, seed: int) -> list[Encounter]:
         out.append(Encounter(
             seed=int(seed * 100_003 + i), kind=kind,
             object_speed_mps=round(float(rng.uniform(2.0, 14.0)), 2),
-            approach_deg=round(float(rng.uniform(-25.0, 25.0)), 1),
-            climb_deg=round(float(rng.uniform(-8.0, 8.0)), 1),
+            approach_deg=round(float(rng.uniform(-50.0, 50.0)), 1),  # crossing objects too
+            climb_deg=round(float(rng.uniform(-15.0, 15.0)), 1),
             miss_m=round(float(rng.choice([0.0, rng.uniform(0.0, 0.6)])), 2),
             miss_dir_deg=round(float(rng.uniform(0.0, 360.0)), 0),
             size_m=round(size * float(rng.uniform(0.8, 1.25)), 2),
             grey=int(rng.integers(g0, g1 + 1)),
-            own_speed_mps=float(rng.choice([0.0, 0.0, 1.0, 2.0, 3.0])),
+            own_speed_mps=float(rng.choice([0.0, 0.0, 1.0, 2.0, 3.0, 4.0])),
         ))
     return out
 
@@ -113,11 +113,22 @@ def default_workers() -> int:
 # ---------------------------------------------------------------------------- the report
 
 
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval of a rate k/n (95 % for z = 1.96; Wilson 1927)."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
 def _rate(rows: list[EncounterResult]) -> str:
     if not rows:
         return "–"
     ok = sum(r.success for r in rows)
-    return f"{ok / len(rows):.0%} ({ok}/{len(rows)})"
+    lo, hi = wilson(ok, len(rows))
+    return f"{ok / len(rows):.0%} ({ok}/{len(rows)}; {lo:.0%}–{hi:.0%})"
 
 
 def _median(values: Sequence[float | None]) -> str:
@@ -189,6 +200,13 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     else:
         text = f"holds below {env:g} m/s"
     lines += ["", f"Envelope (success ≥ 90 %): {text}", ""]
+    crossing = [r for r in rows if r.towards_passage is not None]
+    if crossing:
+        towards = sum(bool(r.towards_passage) for r in crossing)
+        into = sum(bool(r.into_path) for r in crossing)
+        lines += [f"Direction (from the truth, first evasion of encounters approaching at 20–50°): "
+                  f"{towards} of {len(crossing)} moved towards the object's true passage; {into} of "
+                  f"{len(crossing)} moved along its lateral motion (into its path, not behind it).", ""]
     if wide:
         lo, hi = WIDE_MISS_M
         lines += [f"Wide passes (would miss by {lo:g}–{hi:g} m, outside the window: nothing to do): "

@@ -155,6 +155,11 @@ class EncounterResult:
     min_separation_m: float = math.inf
     t_min_separation_s: float | None = None  # since the start
     success: bool = False  # min separation >= radii + margin
+    # the first evasion's direction judged from the truth, for objects approaching at
+    # 20-50 deg (crossing the view): towards the true passage point (relative to the vehicle,
+    # in its right/down plane), and along the object's lateral motion (into its path)
+    towards_passage: bool | None = None
+    into_path: bool | None = None
     false_evasions: int = 0  # commands with no object in the world
     frames: int = 0
     frames_dropped: int = 0
@@ -284,11 +289,35 @@ def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
             break
     if commands:
         first = commands[0]
+        if 20.0 <= abs(enc.approach_deg) <= 50.0 and first["action"] == "evade":
+            res.towards_passage, res.into_path = _direction_vs_truth(camera, int(first["frame"]),
+                                                                     first["velocity_frd_mps"])
         res.evaded = True
         d = distance(int(first["frame"]))
         res.evade_range_m = None if d is None else round(d, 2)
         res.evade_before_cpa_s = round(t_cpa - (rec_t0 + float(first["t_capture"])), 3)
     return res
+
+
+def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float]
+                        ) -> tuple[bool | None, bool | None]:
+    """Does an evasion (forward, right, down m/s) commanded at ``frame`` move towards where
+    the object will pass the vehicle (its closest approach, on the relative course the
+    truth had then), and along the object's lateral motion? Body axes are NED here (the
+    vehicle flies north with yaw 0)."""
+    rows = {t.frame: t for t in camera.truth if t.object_m is not None}
+    a, b = rows.get(frame - 1), rows.get(frame)
+    if a is None or b is None or a.object_m is None or b.object_m is None or b.t_s <= a.t_s:
+        return None, None
+    r = np.subtract(b.object_m, b.vehicle_m)
+    v = (r - np.subtract(a.object_m, a.vehicle_m)) / (b.t_s - a.t_s)
+    t = max(0.0, float(-r @ v / (v @ v + 1e-12)))
+    passage = r + v * t  # relative position at the closest approach
+    d = np.array([frd[1], frd[2]], float)
+    lateral_passage, lateral_v = passage[1:], v[1:]
+    towards = bool(d @ lateral_passage > 0.05 * float(np.linalg.norm(d))) if np.linalg.norm(d) else None
+    into = bool(d @ lateral_v > 0) if np.linalg.norm(lateral_v) > 0.3 else None
+    return towards, into
 
 
 def _episodes(frames: list[int], gap: int = 15) -> int:

@@ -78,11 +78,22 @@ def _draw_decision(out: np.ndarray, result: PerceptionResult, command: Command |
         if o is None:
             continue
         x, y, w, h = (int(round(v)) for v in t.box)
-        label = f"{o.z_m:.1f} m" + ("" if o.fresh else " (stale)")
-        if o.ttc_s is not None:
-            label += f" ttc {o.ttc_s:.1f}s"
+        if o.source == "image":  # no range yet: the image's time to contact
+            label = "image"
+        else:
+            label = f"{o.z_m:.1f} m" + ("" if o.fresh else " (stale)")
+        if o.tau_s is not None:
+            label += f" tau {o.tau_s:.1f}s"
         cv2.putText(out, label, (x, y + h + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, TRACK_COLOUR, 1,
                     cv2.LINE_AA)
+        if o.miss_sizes is not None and o.tau_s is not None and o.tau_s > 0:
+            # the predicted passage, drawn where it will cross (object sizes -> px at its range)
+            d = o.diameter_m or decider.cfg.object_diameter_min_m
+            z = max(o.z_m, 0.3) if o.source != "image" else d / max(1e-6, (w + h) / 2 / cam.fx)
+            px = (int(round(cam.ppx + cam.fx * o.miss_sizes[0] * d / z)),
+                  int(round(cam.ppy + cam.fy * o.miss_sizes[1] * d / z)))
+            cv2.line(out, (x + w // 2, y + h // 2), px, ALERT_COLOUR, 1, cv2.LINE_AA)
+            cv2.drawMarker(out, px, ALERT_COLOUR, cv2.MARKER_TILTED_CROSS, 10, 2)
     if command is None or command.action == "none":
         return "decision: none"
     if command.action == "evade":
