@@ -299,7 +299,7 @@ class RecordConfig:
         "none",
         "also save every processed frame (lossless PNG) as a recording folder that `midair "
         "replay` reads: color+depth, color or none. Costs ~8 ms of CPU and ~150 KB per frame "
-        "(measured, README); for desk and test flights, not on a Pi at 60 fps",
+        "(measured, docs/measurements.md); for desk and test flights, not on a Pi at 60 fps",
         choices=("color+depth", "color", "none"),
     )
     png_compression: int = param(1, "PNG compression of saved frames (0 fastest .. 9 smallest)",

@@ -2,7 +2,7 @@
 
 The only module that imports ``pyrealsense2``, and only when a RealSense source is opened:
 everything else works without the SDK (it has no aarch64 wheel for Python >= 3.11; on the
-Pi it is built from librealsense's source, see the README).
+Pi it is built from librealsense's source, see docs/pi-install.md).
 
 What it does, per the runtime issue:
 
@@ -59,7 +59,7 @@ def _rs() -> Any:
     except ImportError:
         raise SourceError(
             "the RealSense camera needs pyrealsense2: pip install 'midair[realsense]' "
-            "(on a Pi 4, build it from librealsense's source, see the README)"
+            "(on a Pi 4, build it from librealsense's source, see docs/pi-install.md)"
         ) from None
     return rs
 

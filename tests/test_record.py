@@ -40,7 +40,7 @@ def saving(tmp_path: Path, **kw: object) -> RecordConfig:
 
 
 def test_frames_are_not_saved_by_default() -> None:
-    assert RecordConfig().frames == "none"  # ~8 ms of CPU per frame: opt-in (README)
+    assert RecordConfig().frames == "none"  # ~8 ms of CPU per frame: opt-in (docs/measurements.md)
 
 
 def test_oldest_runs_go_first_and_frames_stop_at_the_limit(tmp_path: Path) -> None:

@@ -2,7 +2,7 @@
 
 Frame differencing cannot tell a bird from a swaying branch or from ground that parallax
 moves: both leave a blob that persists. What can tell them apart is *where* the blob is and
-*how* it behaves. Measured on the Halmstad clips (README, "Track confidence"): objects sit in
+*how* it behaves. Measured on the Halmstad clips (docs/measurements.md, "Track confidence"): objects sit in
 plain surroundings (sky: ring gradient 75th percentile ~4 grey levels/px, median) while false
 tracks sit in texture (trees, ground: ~17), and objects move steadily while clutter jitters.
 
