@@ -130,6 +130,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--miss", type=float, default=0.0, help="single encounter: miss distance if "
                    "nobody moved, m (0: collision course)")
     m.add_argument("--size", type=float, default=0.3, help="single encounter: object diameter, m")
+    m.add_argument("--fps", type=float, default=30.0, help="the simulated camera's frame rate (the "
+                   "D435i's colour: 30 or 60), frames/s")
     m.add_argument("--own-speed", type=float, default=0.0, help="single encounter: the vehicle's "
                    "forward speed (Mission leg), m/s; 0 hovers")
     with_config(m)
@@ -401,6 +403,7 @@ def _unwrap(exc: BaseException) -> BaseException:
 
 def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     import time
+    from dataclasses import replace
 
     try:
         from app.sim.campaign import (
@@ -420,7 +423,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     t0 = time.monotonic()
     if args.campaign is None and not args.object_free and not args.wide_passes:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
-                        miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed)
+                        miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
@@ -429,10 +432,13 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         raise UsageError(f"--campaign {args.campaign}: must be at least 1")
     if args.wide_passes < 0 or args.object_free < 0:
         raise UsageError("--wide-passes and --object-free must not be negative")
+    if args.fps not in (30.0, 60.0):
+        raise UsageError(f"--fps {args.fps:g}: the D435i's colour stream runs at 30 or 60")
     workers = args.workers or default_workers()
-    encounters = sample_encounters(args.campaign or 0, args.seed)
-    wide = wide_passes(args.wide_passes, args.seed)
-    free = object_free(args.object_free, args.seed) if args.object_free else []
+    encounters = [replace(e, fps=args.fps) for e in sample_encounters(args.campaign or 0, args.seed)]
+    wide = [replace(e, fps=args.fps) for e in wide_passes(args.wide_passes, args.seed)]
+    free = ([replace(e, fps=args.fps) for e in object_free(args.object_free, args.seed)]
+            if args.object_free else [])
 
     def progress(done: int, total: int) -> None:
         print(f"\rencounters {done}/{total}", end="", file=sys.stderr, flush=True)

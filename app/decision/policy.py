@@ -390,8 +390,8 @@ class DecisionMaker:
             return None
         if o.source == "image" and not o.reported:
             return None  # no range and perception calls it clutter: the image alone won't do
-        if o.tau_std_s is None or o.tau_std_s > MAX_TAU_REL_STD * o.tau_s:
-            return None  # too unsure when (a young depth track's velocity): not yet
+        if o.tau_std_s is None:
+            return None
         need_m = -math.inf
         for d, miss, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
             clearance = c.vehicle_radius_m + d / 2 + c.clearance_margin_m
@@ -399,9 +399,14 @@ class DecisionMaker:
             need_m = max(need_m, clearance - worst)
         if need_m <= 0:
             return None
-        # the time left, judged early by the estimate's uncertainty
-        tau = o.tau_s - c.passage_sigmas * (o.tau_std_s or 0.0)
-        return max(0.0, tau), self.response.time_to_move_s(need_m)
+        need_s = self.response.time_to_move_s(need_m)
+        spread = c.passage_sigmas * o.tau_std_s
+        if o.tau_s + spread <= need_s + c.trigger_margin_s:
+            return o.tau_s + spread, need_s  # urgent even at its latest: act, however unsure
+        if o.tau_std_s > MAX_TAU_REL_STD * o.tau_s:
+            return None  # too unsure when (a young depth track's velocity): not yet
+        # known well enough: the time left judged at its earliest
+        return max(0.0, o.tau_s - spread), need_s
 
     def decide_response(self, objects: list[ObjectState], t_s: float, altitude_m: float | None) -> Command:
         """``trigger: response``: evade each object whose predicted passage is inside its

@@ -169,7 +169,8 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     course = [r for r in threats if r.encounter.miss_m < 0.15]
     lines = [f"# {title}", "",
              f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
-             f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, wall time {wall_s:.0f} s.", "",
+             f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, camera "
+             f"{rows[0].encounter.fps if rows else 30:g} fps, wall time {wall_s:.0f} s.", "",
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
              "|---|---|---|---|---|---|---|"]
