@@ -393,6 +393,13 @@ class DecisionConfig:
         0.4, "image estimate: ln(size) and bearing are fitted over this window, s", gt=0
     )
     looming_min_samples: int = param(6, "image estimate: fewest matched frames in the window", ge=3)
+    max_descent_mps: float = param(
+        1.5, "an evasion descends no faster than this: what PX4 flies in Offboard (MPC_Z_VEL_MAX_DN, "
+        "default 1.5), m/s", gt=0,
+    )
+    max_climb_mps: float = param(
+        3.0, "an evasion climbs no faster than this (PX4 MPC_Z_VEL_MAX_UP, default 3), m/s", gt=0
+    )
     response_dead_time_s: float = param(
         0.15, "vehicle response: time before a command starts to move the vehicle (PX4 SITL "
         "SIH: 0.13-0.23 s, docs/sitl.md), s", ge=0,

@@ -272,11 +272,21 @@ def test_replay_with_depth_evades_an_approaching_object(approach: Path, tmp_path
     assert all(c.action == NONE for f, c in stats.decisions if f < f0)
     # the default (time-to-collision, 1.5 s) starts the same evasion far earlier: at about
     # 4 m/s x 1.5 s = 6 m, once the 3-D track has its closing speed
-    ttc = run_replay(open_source(approach), Config(), tmp_path / "ttc", video=False, altitude_m=ALT)
+    ttc_cfg = Config(decision=DecisionConfig(trigger="ttc"))
+    ttc = run_replay(open_source(approach), ttc_cfg, tmp_path / "ttc", video=False, altitude_m=ALT)
     f1, c1 = next((f, c) for f, c in ttc.decisions if c.action == EVADE)
     z_ttc = 8.0 - 4.0 * (f1 - 1) / 30.0
     assert 3.0 < z_ttc <= 4.0 * CFG.ttc_avoid_s + 0.3 and f1 < f0
     assert c1.right_mps > 0 and c1.down_mps > 0
+    # the default (response: looming and the vehicle's need) acts in time for the vehicle
+    # to move its clearance, and away from the ball's passage (up-left of it: never up, left)
+    resp = run_replay(open_source(approach), Config(), tmp_path / "resp", video=False, altitude_m=ALT)
+    f2, c2 = next((f, c) for f, c in resp.decisions if c.action == EVADE)
+    left_s = (8.0 - 4.0 * (f2 - 1) / 30.0) / 4.0  # time to the camera plane when it began
+    clearance = CFG.vehicle_radius_m + 0.15 + CFG.clearance_margin_m
+    need = DecisionMaker(CFG, CAM).response.time_to_move_s(clearance)
+    assert left_s >= need and f2 < f0
+    assert c2.right_mps >= 0 and c2.down_mps >= 0 and c2.speed_mps > 0
 
 
 def test_min_track_confidence_keeps_unbelieved_tracks_out_of_depth() -> None:

@@ -466,9 +466,19 @@ class DecisionMaker:
             return Command(STOP, object_id=primary.track_id,
                            reason=f"no escape direction clears objects {ids}: stop")
         self._engaged = _Engagement(EVADE, eng.object_id if eng else primary.track_id, direction)
-        speed = min(c.evade_speed_mps, c.max_speed_mps)
-        return Command(EVADE, 0.0, direction[0] * speed, direction[1] * speed, self._engaged.object_id,
+        right, down = self._velocity(direction)
+        return Command(EVADE, 0.0, right, down, self._engaged.object_id,
                        reason=f"object {primary.track_id} {why}: evade {describe_direction(direction)}")
+
+    def _velocity(self, d: tuple[float, float]) -> tuple[float, float]:
+        """The evasion velocity (right, down m/s) along ``d`` at the evasion speed, its
+        vertical part within what PX4 flies in Offboard (MPC_Z_VEL_MAX_DN / _UP: a faster
+        descent is commanded but not flown, and the escape would be judged on a speed the
+        vehicle does not reach)."""
+        c = self.cfg
+        speed = min(c.evade_speed_mps, c.max_speed_mps)
+        right, down = d[0] * speed, d[1] * speed
+        return right, max(-c.max_climb_mps, min(c.max_descent_mps, down))
 
     def _escape(self, threats: list[ObjectState], latched: tuple[float, float] | None,
                 can_descend: bool) -> tuple[float, float] | None:
@@ -492,11 +502,14 @@ class DecisionMaker:
 
         def score(d: tuple[float, float]) -> float:
             worst = math.inf
+            vel = self._velocity(d)
+            scale = math.hypot(*vel) / max(1e-9, self.response.speed_mps)  # a capped descent is slower
             for o in threats:
-                s = self.response.displacement_m(max(0.0, o.tau_s or 0.0))
+                s = self.response.displacement_m(max(0.0, o.tau_s or 0.0)) * scale
+                u = (vel[0] / max(1e-9, math.hypot(*vel)), vel[1] / max(1e-9, math.hypot(*vel)))
                 for size, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
                     clearance = c.vehicle_radius_m + size / 2 + c.clearance_margin_m
-                    miss = math.hypot(m[0] - s * d[0], m[1] - s * d[1]) - k * std
+                    miss = math.hypot(m[0] - s * u[0], m[1] - s * u[1]) - k * std
                     worst = min(worst, miss - clearance)
             return worst
 

@@ -15,7 +15,9 @@ as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
   2 m/s commanded → 1 m/s after ~0.7 s; a stop from ~1.5 m/s falls below 0.2 m/s in
   1.3–2.4 s, drifting 1–1.7 m): dead time 0.15 s and time constant 0.79 s give 1 m/s at
   0.70 s, 1.74 s to stop and 1.25 m of drift.
-- Body-frame velocity setpoints are yaw-aligned and horizontal, as PX4 applies them.
+- Body-frame velocity setpoints are yaw-aligned and horizontal, as PX4 applies them; in
+  Offboard the vertical speed is capped at MPC_Z_VEL_MAX_UP (3 m/s) / MPC_Z_VEL_MAX_DN
+  (1.5 m/s) as PX4's position controller does (mc_pos_control, Offboard constraints).
 - A pilot mode switch (:meth:`pilot_set_mode`), a link cut (:meth:`set_link`) and a
   mission whose progress advances while the mode is Mission.
 
@@ -95,7 +97,10 @@ class SimPx4:
         # every mode change asked for on the wire, accepted or not: (t, mode); a
         # MAV_CMD_MISSION_START counts as a request for "mission"
         self.mode_requests: list[tuple[float, str]] = []
-        self.params: dict[str, float] = {"MIS_TAKEOFF_ALT": 2.5, "COM_OF_LOSS_T": of_loss_t_s}
+        # PX4's defaults for what this vehicle models (mc_pos_control): in Offboard the
+        # vertical speed is capped by MPC_Z_VEL_MAX_UP / _DN whatever the setpoint asks
+        self.params: dict[str, float] = {"MIS_TAKEOFF_ALT": 2.5, "COM_OF_LOSS_T": of_loss_t_s,
+                                         "MPC_Z_VEL_MAX_UP": 3.0, "MPC_Z_VEL_MAX_DN": 1.5}
         self._lock = threading.Lock()
         self._link = True
         self._stop = threading.Event()
@@ -270,7 +275,9 @@ class SimPx4:
             if now - self._last_setpoint_t > self.of_loss_t_s:
                 self._set_mode(self.loss_mode, "offboard loss")
                 return (0.0, 0.0, 0.0)
-            return self._setpoint_body
+            f, r, d = self._setpoint_body
+            d = max(-self.params["MPC_Z_VEL_MAX_UP"], min(self.params["MPC_Z_VEL_MAX_DN"], d))
+            return (f, r, d)
         if st.mode == "mission":
             return (st.cruise_mps, 0.0, 0.0)  # a leg flown straight ahead (MPC_XY_CRUISE)
         if st.mode == "takeoff":
