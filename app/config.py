@@ -496,6 +496,10 @@ class FlightConfig:
     pilot_cooldown_s: float = param(
         10.0, "after the pilot takes control back, do not take over again for this long, s", ge=0
     )
+    offboard_loss_s: float = param(
+        1.0, "PX4's COM_OF_LOSS_T: a link outage longer than this while in control means PX4's "
+        "offboard-loss failsafe has acted, and midair gives control up for the cooldown, s", gt=0,
+    )
 
 
 @dataclass(frozen=True)

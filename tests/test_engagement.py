@@ -165,14 +165,15 @@ def test_link_back_in_another_mode_is_not_taken_back() -> None:
     e = Engagement(FlightConfig(), 3.0)
     t = engaged(e)
     e.tick(vs(t + DT, "offboard", connected=False), Decision(EVADE_CMD, t + DT))
-    # first tick back: the old mode, not yet re-reported
-    held = e.tick(VehicleState(t + 2.0, True, True, True, "offboard", 10.0, mode_t_s=t),
-                  Decision(EVADE_CMD, t + 2.0))
+    # first tick back after a short outage (under offboard_loss_s): the old mode, not yet
+    # re-reported: zero while waiting for the report
+    held = e.tick(VehicleState(t + 0.6, True, True, True, "offboard", 10.0, mode_t_s=t),
+                  Decision(EVADE_CMD, t + 0.6))
     assert held.setpoint == (0.0, 0.0, 0.0)
-    out = e.tick(vs(t + 2.1, "return"), Decision(EVADE_CMD, t + 2.1))  # PX4 failsafe: RTL
+    out = e.tick(vs(t + 0.7, "return"), Decision(EVADE_CMD, t + 0.7))  # the pilot: RTL
     assert out.state == MONITOR and out.setpoint in (None, ZERO) and not out.start_offboard
     assert "hands off" in (out.status or "")
-    assert not e.tick(vs(t + 2.2, "position"), Decision(EVADE_CMD, t + 2.2)).start_offboard
+    assert not e.tick(vs(t + 0.8, "position"), Decision(EVADE_CMD, t + 0.8)).start_offboard
 
 
 def test_guard_mode_keeps_the_offboard_path_warm_only_when_flying() -> None:
@@ -256,3 +257,29 @@ def test_a_withheld_take_over_is_said_once_per_object_and_reason() -> None:
         if out.status:
             said.append(out.status)
     assert said == ["midair: evade held: pilot cooldown 10 s", "midair: evade held: pilot cooldown 7 s"]
+
+
+def test_an_outage_longer_than_the_offboard_loss_time_gives_control_up() -> None:
+    """PX4's failsafe acted during the outage and PX4 returns to Offboard by itself on the
+    re-sent (zero) setpoint: midair does not read that as its own control; once the report is
+    clearly new, it hands the vehicle to Hold, once."""
+    e = Engagement(FlightConfig(), 3.0)
+    t = engaged(e)
+    for _ in range(30):  # 1.5 s without a link
+        t += DT
+        lost = VehicleState(t, False, True, True, "offboard", 10.0, mode_t_s=t - 2)
+        out = e.tick(lost, Decision(EVADE_CMD, t))
+        assert out.setpoint in (None, ZERO)
+    t += DT
+    out = e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t))
+    assert e.state == MONITOR and out.status == "midair: link was lost, hands off"
+    leaves, moves = [], []
+    for _ in range(60):  # 3 s: the vehicle keeps reporting Offboard (PX4 resumed it)
+        t += DT
+        out = e.tick(vs(t, "offboard"), Decision(EVADE_CMD, t))
+        moves += [out.setpoint] if out.setpoint not in (None, ZERO) else []
+        if out.leave_to:
+            leaves.append((round(t, 2), out.leave_to))
+    assert not moves  # the evasion is never resumed
+    assert len(leaves) >= 1 and leaves[0][1] == "hold"
+    assert leaves[1][0] - leaves[0][0] >= 1.5 if len(leaves) > 1 else True  # not every tick

@@ -28,7 +28,13 @@ Safety rules held here:
 - Link loss: the setpoint is cleared to zero at once. After the link returns, nothing but
   zero is sent until the vehicle has reported its mode anew (the mode in hand predates the
   outage) and a decision made after the reconnection arrives; if the vehicle is no longer
-  in Offboard (PX4's offboard-loss failsafe, or the pilot) we do not take it back.
+  in Offboard (PX4's offboard-loss failsafe, or the pilot) we do not take it back. An outage
+  longer than ``offboard_loss_s`` (PX4's COM_OF_LOSS_T) gives control up in any case: PX4's
+  failsafe has acted, and PX4 re-enters Offboard *by itself* once setpoints arrive again
+  (MAVSDK re-sends the cleared one), which must not read as ours (PX4 SITL, seen).
+- Offboard that is not ours: once midair has given control up, a vehicle reported in
+  Offboard more than ``UNOWNED_GRACE_S`` later sits on midair's zero stream; it is handed
+  to Hold (when in doubt, hold position).
 - Every velocity is clamped to ``max_speed_mps``.
 
 Velocities are body frame (forward, right, down), m/s; times are monotonic seconds.
@@ -45,6 +51,9 @@ from app.decision.policy import NONE, STOP, Command, describe_direction
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
 ZERO = (0.0, 0.0, 0.0)
 OFFBOARD_RETRY_S = 0.25  # while requesting, ask PX4 again this often, s
+# after midair gives control up, an Offboard report this much later is not a stale one (PX4
+# reports its mode in the 1 Hz heartbeat, seen 0.4-0.9 s late), s
+UNOWNED_GRACE_S = 1.5
 
 
 @dataclass(frozen=True)
@@ -116,6 +125,8 @@ class Engagement:
         self._requested_at = -math.inf  # when the current take-over began
         self._engaged_at = -math.inf
         self._had_link = False  # a link that never was cannot be "lost"
+        self._lost_at = -math.inf  # when the current outage began
+        self._left_at = -math.inf  # when midair last gave control up (left, or handed off)
 
     @property
     def in_control(self) -> bool:
@@ -139,6 +150,11 @@ class Engagement:
             self._link_was_lost = False
             self._fresh_after = v.t_s
             self._stale_since = None
+            if self.state != MONITOR and v.t_s - self._lost_at > c.offboard_loss_s:
+                # PX4's offboard-loss failsafe has acted: control is not ours any more, even
+                # if PX4 goes back to Offboard on the (zero) setpoint MAVSDK re-sends.
+                self._awaiting_mode_since = None
+                return self._pilot_took_over(v, "midair: link was lost, hands off")
             if self.state != MONITOR:
                 # The mode in hand predates the outage: wait for the vehicle to report it anew.
                 self._awaiting_mode_since = v.t_s
@@ -163,6 +179,9 @@ class Engagement:
                 # Offboard on our zero stream. Hand it back instead of leaving it there.
                 self._requested_at = -math.inf
                 return self._leave(v, self._return_to, "midair: offboard came late: handing back")
+            if (v.mode == "offboard" and self.cfg.mode == "guard" and v.armed and v.in_air
+                    and v.mode_t_s > self._left_at + UNOWNED_GRACE_S > -math.inf):
+                return self._leave(v, "hold", "midair: Offboard not ours, to Hold")
             return self._monitor(v, cmd)
 
         # requesting or engaged: we hold (or are asking for) control. PX4 reports its mode
@@ -263,6 +282,7 @@ class Engagement:
     def _pilot_took_over(self, v: VehicleState, text: str) -> Output:
         self.state = MONITOR
         self._requested_at = -math.inf
+        self._left_at = v.t_s
         self._cooldown_until = v.t_s + self.cfg.pilot_cooldown_s
         return Output(MONITOR, status=text)
 
@@ -272,10 +292,13 @@ class Engagement:
         # next tick left a second time (a second offboard stop, a second mission start).
         self.state = MONITOR
         self._requested_at = -math.inf
+        self._left_at = v.t_s
         return Output(MONITOR, setpoint=ZERO, leave_to=to, status=text)
 
     def _link_lost(self, v: VehicleState) -> Output:
         first = not self._link_was_lost and self._had_link
+        if first:
+            self._lost_at = v.t_s
         self._link_was_lost = self._link_was_lost or self._had_link
         if self.state == MONITOR:
             return Output(MONITOR, status="midair: link lost" if first else None)

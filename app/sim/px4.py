@@ -10,16 +10,18 @@ as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
   "PX4 enables offboard control only after receiving the signal for more than a second",
   PX4 user guide, Offboard Mode), and left (offboard-loss failsafe) ``COM_OF_LOSS_T`` s
   after the last setpoint, to ``loss_mode``.
-- Velocity tracking with a dead time, a first-order lag and an acceleration limit,
-  calibrated on PX4 SITL's SIH quadrotor (first response 0.13–0.23 s after a command;
-  2 m/s commanded → 1 m/s after ~0.7 s; a stop from ~1.5 m/s falls below 0.2 m/s in
-  1.3–2.4 s, drifting 1–1.7 m): dead time 0.15 s and time constant 0.79 s give 1 m/s at
-  0.70 s, 1.74 s to stop and 1.25 m of drift.
+- Velocity tracking with a dead time, a first-order lag and an acceleration limit per axis,
+  calibrated on PX4 SITL's SIH quadrotor (docs/sitl.md): horizontally dead time 0.15 s and
+  time constant 0.79 s (2 m/s commanded → 1 m/s at 0.70 s; SITL 0.58–0.74 s; a stop from
+  3 m/s in 2.3 s, SITL 1.4–3.0 s), vertically 0.06 s and 0.15 s (PX4's vertical loop is
+  quicker: a 3 m/s up-diagonal moves 0.5 m in 0.5 s, SITL 0.50–0.65 m).
 - Body-frame velocity setpoints are yaw-aligned and horizontal, as PX4 applies them; in
   Offboard the vertical speed is capped at MPC_Z_VEL_MAX_UP (3 m/s) / MPC_Z_VEL_MAX_DN
   (1.5 m/s) as PX4's position controller does (mc_pos_control, Offboard constraints).
 - A pilot mode switch (:meth:`pilot_set_mode`), a link cut (:meth:`set_link`) and a
   mission whose progress advances while the mode is Mission.
+- After its offboard-loss failsafe, going back to Offboard by itself once setpoints stream
+  again for ``OF_RESUME_S`` (PX4 does: seen on SITL 0.49-0.52 s after the link returned).
 
 It runs in its own thread at ``rate_hz``; everything it received is kept for tests.
 """
@@ -44,9 +46,17 @@ PX4_MODES: dict[str, tuple[int, int]] = {
 }
 _BY_CODE = {v: k for k, v in PX4_MODES.items()}
 
+# Horizontal: fitted to PX4 SITL's SIH quadrotor (2 m/s commanded -> 1 m/s after 0.58-0.74 s).
 DEAD_TIME_S = 0.15
 TAU_S = 0.79
 ACCEL_LIMIT_MPS2 = 4.0
+# Vertical: PX4's vertical velocity loop is much quicker (MPC_Z_VEL_P_ACC 4 against
+# MPC_XY_VEL_P_ACC 1.8): a 3 m/s up-diagonal reached 1 m/s along the command at 0.22-0.25 s,
+# 2 m/s at 0.46-0.58 s and moved 0.50-0.65 m in 0.5 s, 1.53-1.97 m in 1.0 s (SITL, docs/sitl.md)
+DEAD_TIME_Z_S = 0.06
+TAU_Z_S = 0.15
+ACCEL_LIMIT_Z_MPS2 = 8.0
+OF_RESUME_S = 0.5  # PX4 leaves its offboard-loss failsafe after setpoints stream this long, s
 
 
 @dataclass
@@ -110,7 +120,12 @@ class SimPx4:
         self._setpoint_body = (0.0, 0.0, 0.0)
         self._pipeline: deque[tuple[float, tuple[float, float, float]]] = deque()
         self._applied = (0.0, 0.0, 0.0)  # the command the vehicle is acting on now
+        self._pipeline_z: deque[tuple[float, float]] = deque()  # the vertical part's own delay
+        self._applied_z = 0.0
         self._mission_s = 0.0
+        # in PX4's offboard-loss failsafe: PX4 goes back to Offboard by itself once setpoints
+        # stream again for about half a second (PX4 SITL: 0.49-0.52 s, docs/sitl.md)
+        self._of_failsafe = False
         self._conn = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{gcs_port}", source_system=1, source_component=1, dialect="common"
         )
@@ -218,6 +233,9 @@ class SimPx4:
             body = (c * m.vx + s * m.vy, -s * m.vx + c * m.vy, m.vz)
         self._setpoint_body = body
         self.received.append(Received(now, body))
+        if (self._of_failsafe and self.state.mode == self.loss_mode
+                and now - self._stream_since >= OF_RESUME_S):
+            self._set_mode("offboard", "failsafe cleared")
 
     def _on_command(self, m: object, now: float) -> None:
         cmd = int(m.command)  # type: ignore[attr-defined]
@@ -263,6 +281,8 @@ class SimPx4:
         return ml.MAV_RESULT_ACCEPTED
 
     def _set_mode(self, mode: str, why: str) -> None:
+        if why != "offboard loss":
+            self._of_failsafe = False  # a mode asked for (or the pilot's) ends the failsafe
         if mode != self.state.mode:
             self.state.mode = mode
             self.mode_log.append((time.monotonic(), mode, why))
@@ -274,6 +294,7 @@ class SimPx4:
         if st.mode == "offboard":
             if now - self._last_setpoint_t > self.of_loss_t_s:
                 self._set_mode(self.loss_mode, "offboard loss")
+                self._of_failsafe = True
                 return (0.0, 0.0, 0.0)
             f, r, d = self._setpoint_body
             d = max(-self.params["MPC_Z_VEL_MAX_UP"], min(self.params["MPC_Z_VEL_MAX_DN"], d))
@@ -291,17 +312,22 @@ class SimPx4:
         if not st.armed or not st.in_air:
             st.vel_ned = [0.0, 0.0, 0.0]
             return
-        self._pipeline.append((now, self._commanded_body(now)))
+        cmd = self._commanded_body(now)
+        self._pipeline.append((now, cmd))
+        self._pipeline_z.append((now, cmd[2]))
         while self._pipeline and now - self._pipeline[0][0] >= DEAD_TIME_S:
             self._applied = self._pipeline.popleft()[1]  # commands act after the dead time
+        while self._pipeline_z and now - self._pipeline_z[0][0] >= DEAD_TIME_Z_S:
+            self._applied_z = self._pipeline_z.popleft()[1]
         target = self._applied
         c, s = math.cos(st.yaw_rad), math.sin(st.yaw_rad)
         tn = c * target[0] - s * target[1]
         te = s * target[0] + c * target[1]
-        goal = (tn, te, target[2])
+        goal = (tn, te, self._applied_z)
         for i in range(3):
-            dv = (goal[i] - st.vel_ned[i]) * (1 - math.exp(-dt / TAU_S))
-            lim = ACCEL_LIMIT_MPS2 * dt
+            tau, acc = (TAU_Z_S, ACCEL_LIMIT_Z_MPS2) if i == 2 else (TAU_S, ACCEL_LIMIT_MPS2)
+            dv = (goal[i] - st.vel_ned[i]) * (1 - math.exp(-dt / tau))
+            lim = acc * dt
             st.vel_ned[i] += max(-lim, min(lim, dv))
             st.pos_ned[i] += st.vel_ned[i] * dt
         if st.mode == "takeoff" and -st.pos_ned[2] >= self.params["MIS_TAKEOFF_ALT"]:
