@@ -48,6 +48,7 @@ class ImageEstimate:
     tau_std_s: float | None  # its standard error (first order), s
     miss_sizes: tuple[float, float] | None  # crossing point (X_c/D, Y_c/D), object diameters
     miss_sizes_std: float | None  # its standard error per axis, object diameters
+    bearing_rate_std: float = 0.0  # standard error of the bearing rate (the larger axis), 1/s
 
     def miss_m(self, diameter_m: float) -> tuple[float, float] | None:
         """The crossing point in metres for an object of ``diameter_m``."""
@@ -202,7 +203,7 @@ class LoomingEstimator:
             miss_se = max(math.hypot(tau_mid * rate_se[a] / theta_mid, abs(miss[a]) * rel_tau)
                           for a in (0, 1))
         return ImageEstimate(t_s, n, (bearing[0], bearing[1]), (rate[0], rate[1]), theta, expansion,
-                             exp_se, tau, tau_se, miss, miss_se)
+                             exp_se, tau, tau_se, miss, miss_se, max(rate_se))
 
     def reset(self) -> None:
         self._samples.clear()

@@ -86,6 +86,7 @@ class ObjectState:
     diameter_m: float | None = None  # known once depth gives the range (Z x angular size), m
     seen_s: float = -math.inf  # newest frame the object was matched in (image or depth), s
     reported: bool = True  # perception's confidence reports it as an object (not clutter)
+    crossing_std_m: float = 0.5  # standard error of crossing_m (the depth track's), m
 
     def passages(self, d_min: float, d_max: float) -> list[tuple[float, tuple[float, float], float]]:
         """The passage for each plausible size: (diameter m, miss vector m, its std m). With
@@ -94,8 +95,7 @@ class ObjectState:
         if self.miss_sizes is None:
             if self.crossing_m is None:
                 return []
-            std = 0.5 if self.tau_std_s is None else 0.5
-            return [(self.diameter_m or d_min, self.crossing_m, std)]
+            return [(self.diameter_m or d_min, self.crossing_m, self.crossing_std_m)]
         sizes = [self.diameter_m] if self.diameter_m is not None else [d_min, d_max]
         ms = self.miss_sizes_std or 0.0
         return [(d, (self.miss_sizes[0] * d, self.miss_sizes[1] * d), ms * d) for d in sizes]
@@ -185,12 +185,19 @@ class _Track3D:
         ttc = z / closing if closing > 0.05 and z > 0 else None
         crossing = None if ttc is None else (float(x[0] + x[1] * ttc), float(x[2] + x[3] * ttc))
         tau_std = None
+        crossing_std = 0.5
         if ttc is not None:
-            pz, pv = float(self.kf.P[4, 4]), float(self.kf.P[5, 5])
+            p = self.kf.P
+            pz, pv = float(p[4, 4]), float(p[5, 5])
             tau_std = math.sqrt(pz / closing**2 + (z / closing**2) ** 2 * pv)
+            # X + vX·τ, per axis, with τ's own error: the depth track's lateral velocity is
+            # poorly known for its first frames, and the passage must say so
+            crossing_std = max(math.sqrt(float(p[i, i]) + ttc**2 * float(p[i + 1, i + 1])
+                                         + (float(x[i + 1]) * tau_std) ** 2) for i in (0, 2))
         return ObjectState(track_id, (float(x[0]), float(x[2]), z), self.measured_s,
                            t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc, crossing,
-                           tau_s=ttc, tau_std_s=tau_std, seen_s=self.measured_s)
+                           tau_s=ttc, tau_std_s=tau_std, seen_s=self.measured_s,
+                           crossing_std_m=crossing_std)
 
 
 class DecisionMaker:
@@ -305,8 +312,15 @@ class DecisionMaker:
             # (an inverse-variance blend pulled τ 0.2-0.4 s late in the closed loop).
             tau, tau_std = e.tau_s, e.tau_std_s
         diameter = o.z_m * e.size_rad if o.z_m > 0 else None
+        miss, miss_std = e.miss_sizes, e.miss_sizes_std
+        if miss is None and tau is not None and tau > 0 and tau_std is not None:
+            # no looming yet (a crossing object closes slowly) but depth gives τ: the passage
+            # from the image's bearing rate with the depth's τ (X_c / D = τ · b' / θ)
+            miss = (tau * e.bearing_rate[0] / e.size_rad, tau * e.bearing_rate[1] / e.size_rad)
+            miss_std = math.hypot(tau * e.bearing_rate_std / e.size_rad,
+                                  math.hypot(*miss) * tau_std / tau)
         return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
-                                   miss_sizes=e.miss_sizes, miss_sizes_std=e.miss_sizes_std,
+                                   miss_sizes=miss, miss_sizes_std=miss_std,
                                    diameter_m=diameter,
                                    seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
 
