@@ -596,15 +596,22 @@ async def test_sitl_link_loss_mid_evasion_failsafe_then_midair_does_not_retake(
     px4_back = [round(t - t_back, 2) for t, m in gcs.v.modes if t >= t_back and m == "offboard"]
     first_move = next((round(s.t - t_back, 2) for s in proxy.setpoints_since(t_back)
                        if s.velocity != ZERO), None)
+    mode_log = [(round(t - t_back, 2), m) for t, m in gcs.v.modes if t >= t_cut - 1.0]
     detail = (f"fallback {fallback!r} {said[0] - last_sp:.2f} s after the last setpoint; after the "
               f"link came back (t=0 s): the ground station saw Offboard again at {px4_back} s, "
               f"PX4's heartbeats to midair (t, mode) {beats[:3]}..., midair asked {asked}, "
               f"midair's states {states}, {len(moving)} non-zero setpoints {moving[:1]} from "
               f"{first_move} s, statuses {midair.statuses()[-3:]}, PX4 said "
-              f"{gcs.texts_since(t_back)[:3]}")
+              f"{gcs.texts_since(t_back)[:3]}; ground station's mode log (t, mode) {mode_log}, "
+              f"final mode {gcs.v.mode!r}")
+    print(detail)  # what happened on the wire, also when it passes (pytest -rP)
     assert "offboard" not in asked, detail
+    assert set(asked) <= {"hold"}, detail  # at most: an Offboard not its own handed to Hold
     assert not moving, detail
     assert states == [MONITOR], detail
+    # and the vehicle is not left in Offboard on midair's zero stream: Hold (midair's hand-off
+    # or the pilot's) or whatever PX4's failsafe chose
+    assert gcs.v.mode not in (None, "offboard"), detail
 
 
 @pytest.mark.asyncio
