@@ -385,6 +385,10 @@ class DecisionConfig:
     object_diameter_max_m: float = param(
         1.0, "largest plausible object (a large drone, a big bird), m", gt=0
     )
+    image_confirm_frames: int = param(
+        3, "response trigger: an object seen in the image only (no range) must be urgent this "
+        "many frames in a row, each consistent with the last, before it triggers", ge=1,
+    )
     passage_sigmas: float = param(
         1.0, "the predicted passage is judged this many standard errors towards the vehicle "
         "(worst case over the estimate's uncertainty)", ge=0,

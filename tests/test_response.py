@@ -32,6 +32,16 @@ def image_obj(tau: float, miss_sizes: tuple[float, float], bearing: tuple[float,
                        miss_sizes_std=miss_std, seen_s=t, reported=reported)
 
 
+def frames(dm: DecisionMaker, make, n: int = 3, alt: float = ALT, t0: float = 0.0):
+    """``n`` consecutive frames of the same course (``make(tau_shift, t)`` builds the objects
+    seen then): an image-only object must be urgent for image_confirm_frames frames."""
+    cmd = None
+    for k in range(n):
+        t = t0 + k / 30.0
+        cmd = dm.decide_response(make(k / 30.0, t), t, alt)
+    return cmd
+
+
 def test_response_model_moves_nothing_during_the_dead_time_then_inverts() -> None:
     m = ResponseModel(0.15, 0.79, 4.0, 3.0)
     assert m.displacement_m(0.15) == 0.0
@@ -73,10 +83,12 @@ def test_a_threat_is_evaded_once_the_time_left_falls_to_the_vehicles_need() -> N
     dm = DecisionMaker(CFG, CAM)
     need_m = CFG.vehicle_radius_m + CFG.object_diameter_max_m / 2 + CFG.clearance_margin_m
     need_s = dm.response.time_to_move_s(need_m - 0.3 * CFG.object_diameter_min_m)
-    early = image_obj(need_s + CFG.trigger_margin_s + 0.5, (0.0, 0.0))
-    assert dm.decide_response([early], 0.0, ALT).action == NONE
-    late = image_obj(need_s + CFG.trigger_margin_s - 0.1, (0.0, 0.0))
-    cmd = dm.decide_response([late], 0.1, ALT)
+    early = need_s + CFG.trigger_margin_s + 0.5
+    assert frames(dm, lambda dt, t: [image_obj(early - dt, (0.0, 0.0), t=t)]).action == NONE
+    late = need_s + CFG.trigger_margin_s - 0.05
+    first = dm.decide_response([image_obj(late, (0.0, 0.0), t=1.0)], 1.0, ALT)
+    assert first.action == NONE  # one frame of the image alone is not enough
+    cmd = frames(dm, lambda dt, t: [image_obj(late - 1 / 30 - dt, (0.0, 0.0), t=t)], n=2, t0=1.0 + 1 / 30)
     assert cmd.action == EVADE and "tau" in cmd.reason and "need" in cmd.reason and "(image)" in cmd.reason
     assert math.isclose(cmd.speed_mps, min(CFG.evade_speed_mps, CFG.max_speed_mps))
 
@@ -85,8 +97,8 @@ def test_a_crossing_object_is_passed_behind_not_dodged_from_where_it_is() -> Non
     """Seen up-left of the nose, flying down-right: it will pass down-right of the vehicle.
     The paper's rule (away from where it is now: down-right) would fly into its passage;
     the escape goes away from the passage."""
-    o = image_obj(0.6, (2.0, 1.2), bearing=(-0.1, -0.06))
-    cmd = DecisionMaker(CFG, CAM).decide_response([o], 0.0, ALT)
+    cmd = frames(DecisionMaker(CFG, CAM),
+                 lambda dt, t: [image_obj(0.6 - dt, (2.0, 1.2), bearing=(-0.1, -0.06), t=t)])
     assert cmd.action == EVADE
     assert cmd.right_mps * 2.0 + cmd.down_mps * 1.2 < 0  # away from the passage
     assert cmd.right_mps < 0 and cmd.down_mps < 0  # up-left: behind it
@@ -94,28 +106,31 @@ def test_a_crossing_object_is_passed_behind_not_dodged_from_where_it_is() -> Non
 
 def test_a_wide_pass_or_clutter_without_range_is_left_alone() -> None:
     dm = DecisionMaker(CFG, CAM)
-    assert dm.decide_response([image_obj(0.4, (12.0, 0.0))], 0.0, ALT).action == NONE  # 12 sizes off
-    assert dm.decide_response([image_obj(0.4, (0.0, 0.0), reported=False)], 0.0, ALT).action == NONE
+    assert frames(dm, lambda dt, t: [image_obj(0.4 - dt, (12.0, 0.0), t=t)]).action == NONE  # 12 sizes off
+    assert frames(dm, lambda dt, t: [image_obj(0.4 - dt, (0.0, 0.0), reported=False, t=t)]).action == NONE
     # a time to the passage too uncertain to act on (a young depth track) does not trigger either
-    assert dm.decide_response([image_obj(0.8, (0.0, 0.0), tau_std=0.5)], 0.0, ALT).action == NONE
+    assert frames(dm, lambda dt, t: [image_obj(0.8 - dt, (0.0, 0.0), tau_std=0.5, t=t)]).action == NONE
+    # nor clutter whose looming flickers: a time left that jumps about from frame to frame
+    flicker = [0.15, 0.6, 0.1, 0.55, 0.2]
+    assert frames(dm, lambda dt, t: [image_obj(flicker[round(dt * 30)], (0.0, 0.0), tau_std=0.03, t=t)],
+                  n=5).action == NONE
 
 
 def test_the_latched_direction_holds_until_the_prediction_flips_beyond_doubt() -> None:
     dm = DecisionMaker(CFG, CAM)
-    first = dm.decide_response([image_obj(0.6, (1.5, 1.5))], 0.0, ALT)
+    first = frames(dm, lambda dt, t: [image_obj(0.6 - dt, (1.5, 1.5), t=t)])
     assert first.action == EVADE and first.right_mps < 0 and first.down_mps < 0
     # noise: the passage wanders to the other side by less than its uncertainty
-    wobble = dm.decide_response([image_obj(0.55, (-0.1, -0.1), miss_std=0.3)], 0.033, ALT)
+    wobble = dm.decide_response([image_obj(0.5, (-0.1, -0.1), miss_std=0.3, t=0.1)], 0.1, ALT)
     assert (wobble.right_mps, wobble.down_mps) == (first.right_mps, first.down_mps)
     # a confident flip: the passage now lies up-left, beyond doubt: the direction changes
-    flip = dm.decide_response([image_obj(0.5, (-2.0, -2.0), miss_std=0.2)], 0.066, ALT)
+    flip = dm.decide_response([image_obj(0.47, (-2.0, -2.0), miss_std=0.2, t=0.133)], 0.133, ALT)
     assert flip.action == EVADE and flip.right_mps > 0 and flip.down_mps > 0
 
 
 def test_two_threats_passing_on_either_side_are_escaped_between_them_or_stopped() -> None:
-    left = image_obj(0.6, (-3.0, 0.0), tid=1)
-    right = image_obj(0.7, (3.0, 0.0), tid=2)
-    cmd = DecisionMaker(CFG, CAM).decide_response([left, right], 0.0, ALT)
+    cmd = frames(DecisionMaker(CFG, CAM), lambda dt, t: [image_obj(0.6 - dt, (-3.0, 0.0), tid=1, t=t),
+                                                          image_obj(0.7 - dt, (3.0, 0.0), tid=2, t=t)])
     assert cmd.action in (EVADE, STOP)
     if cmd.action == EVADE:
         assert cmd.right_mps == 0.0  # towards neither passage: up or down
@@ -123,10 +138,12 @@ def test_two_threats_passing_on_either_side_are_escaped_between_them_or_stopped(
 
 
 def test_the_altitude_floor_forbids_going_down_even_when_that_is_best() -> None:
-    o = image_obj(0.6, (0.0, -2.0))  # passes above: down would be best
-    low = DecisionMaker(CFG, CAM).decide_response([o], 0.0, CFG.min_altitude_m - 0.5)
+    def o(dt: float, t: float) -> list[ObjectState]:
+        return [image_obj(0.6 - dt, (0.0, -2.0), t=t)]  # passes above: down would be best
+
+    low = frames(DecisionMaker(CFG, CAM), o, alt=CFG.min_altitude_m - 0.5)
     assert low.action in (EVADE, STOP) and low.down_mps <= 0.0
-    high = DecisionMaker(CFG, CAM).decide_response([o], 0.0, ALT)
+    high = frames(DecisionMaker(CFG, CAM), o)
     assert high.down_mps > 0
 
 

@@ -26,7 +26,7 @@ from app.config import Config
 from app.sim.simulate import Encounter, EncounterResult, run_encounter
 
 SPEED_BINS = (2.0, 4.0, 6.0, 8.0, 10.0, 14.0)  # m/s
-ANGLE_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)  # |approach| deg (sampled to 50); the colour lens sees +-27.5 deg
+ANGLE_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)  # |approach|, deg (sampled to 50; the lens sees +-27.5)
 KINDS = {  # size m, brightness range (sky ~175-215): ball, bird, small drone
     "ball": (0.25, (20, 60)),
     "bird": (0.4, (50, 120)),
