@@ -413,8 +413,9 @@ class DecisionConfig:
         "commanded reached 1 m/s after ~0.7 s, docs/sitl.md), s", gt=0,
     )
     response_accel_mps2: float = param(
-        4.0, "vehicle response: acceleration limit (PX4 MPC_ACC_HOR_MAX, hardware/px4-companion.params), "
-        "m/s²",
+        4.0, "vehicle response: acceleration limit (the stand-in's; PX4's Offboard velocity control "
+        "has none of its own, its tilt limit binds: a 3 m/s command moved 0.93-1.01 m in 1 s on "
+        "SITL, this model 0.99, docs/sitl.md), m/s²",
         gt=0,
     )
     ttc_avoid_s: float = param(
