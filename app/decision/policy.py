@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -342,20 +343,9 @@ class DecisionMaker:
         # 1. Emergency stop: a fresh object inside emergency distance that we are not already
         #    dodging (stopping mid-evasion would put us back into its path; paper §4-D: the
         #    stop is for objects first measured that close, e.g. arriving from the side).
-        close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
-        if close:
-            near = min(close, key=lambda o: o.z_m)
-            self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
-            return Command(STOP, object_id=near.track_id,
-                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
-                                  f"{c.emergency_m:g} m")
-        if self._engaged is not None and self._engaged.kind == STOP:
-            held = by_id.get(self._engaged.object_id)
-            if (held is not None and t_s - held.measured_s <= c.max_hold_s
-                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
-                return Command(STOP, object_id=held.track_id,
-                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
-            self._engaged = None
+        stop = self._emergency(fresh, by_id, t_s, evading, lambda o: o.measured_s)
+        if stop is not None:
+            return stop
 
         # 2. Threats: hostile (inside the window) and close (or, with ttc, soon).
         threats = [o for o in fresh if self._lateral(o) < c.safe_window_m and self._urgent(o)]
@@ -394,6 +384,27 @@ class DecisionMaker:
         return Command(EVADE, 0.0, right, down, engaged.object_id,
                        reason=f"object {primary.track_id} at {primary.z_m:.2f} m, lateral "
                               f"{primary.lateral_m:.2f} m: evade {describe_direction(direction)}")
+
+    def _emergency(self, fresh: list[ObjectState], by_id: dict[int, ObjectState], t_s: float,
+                   evading: int | None, last_seen: Callable[[ObjectState], float]) -> Command | None:
+        """The emergency stop, or holding one, shared by both policies; None when neither.
+        ``last_seen`` is when a held object last counts as seen (depth, or image too)."""
+        c = self.cfg
+        close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
+        if close:
+            near = min(close, key=lambda o: o.z_m)
+            self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
+            return Command(STOP, object_id=near.track_id,
+                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
+                                  f"{c.emergency_m:g} m")
+        if self._engaged is not None and self._engaged.kind == STOP:
+            held = by_id.get(self._engaged.object_id)
+            if (held is not None and t_s - last_seen(held) <= c.max_hold_s
+                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
+                return Command(STOP, object_id=held.track_id,
+                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
+            self._engaged = None
+        return None
 
     # ------------------------------------------------------------------ policy: response
 
@@ -437,20 +448,9 @@ class DecisionMaker:
         evading = self._engaged.object_id if self._engaged and self._engaged.kind == EVADE else None
 
         # 1. Emergency stop, as the paper's (an object first measured this close).
-        close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
-        if close:
-            near = min(close, key=lambda o: o.z_m)
-            self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
-            return Command(STOP, object_id=near.track_id,
-                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
-                                  f"{c.emergency_m:g} m")
-        if self._engaged is not None and self._engaged.kind == STOP:
-            held = by_id.get(self._engaged.object_id)
-            if (held is not None and t_s - held.seen_s <= c.max_hold_s
-                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
-                return Command(STOP, object_id=held.track_id,
-                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
-            self._engaged = None
+        stop = self._emergency(fresh, by_id, t_s, evading, lambda o: o.seen_s)
+        if stop is not None:
+            return stop
 
         # 2. Threats: time left down to the need (+ margin); the paper's distance rule too.
         threats: list[tuple[ObjectState, str]] = []
@@ -539,10 +539,11 @@ class DecisionMaker:
         def score(d: tuple[float, float]) -> float:
             worst = math.inf
             vel = self._velocity(d)
-            scale = math.hypot(*vel) / max(1e-9, self.response.speed_mps)  # a capped descent is slower
+            speed = max(1e-9, math.hypot(*vel))
+            scale = speed / max(1e-9, self.response.speed_mps)  # a capped descent is slower
+            u = (vel[0] / speed, vel[1] / speed)
             for o in threats:
                 s = self.response.displacement_m(max(0.0, o.tau_s or 0.0)) * scale
-                u = (vel[0] / max(1e-9, math.hypot(*vel)), vel[1] / max(1e-9, math.hypot(*vel)))
                 for size, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
                     clearance = c.vehicle_radius_m + size / 2 + c.clearance_margin_m
                     miss = math.hypot(m[0] - s * u[0], m[1] - s * u[1]) - k * std
