@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from typing import Any, cast
+
 import cv2
 import numpy as np
 import pytest
@@ -284,7 +286,7 @@ def test_one_lk_call_over_the_mosaic_follows_the_points_as_each_crop_alone() -> 
         q1, status, _ = cv2.calcOpticalFlowPyrLK(
             np.ascontiguousarray(cur[y0:y1, x0:x1]), np.ascontiguousarray(nxt[y0:y1, x0:x1]),
             (pts[wid == i] - (x0, y0)).astype(np.float32).reshape(-1, 1, 2),
-            None, **lk)  # type: ignore[call-overload]  # None (no start) is accepted; the stubs say no
+            cast(Any, None), **lk)  # None (no start) is accepted; some stubs say no
         assert status.all()
         alone[wid == i] = q1.reshape(-1, 2) + (x0, y0)
     # the points kept (those still inside their windows) against the same points flowed alone

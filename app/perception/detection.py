@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -360,7 +360,7 @@ class MotionDetector:
         self._has_shift = [False] * n_windows
         q1, status, _err = cv2.calcOpticalFlowPyrLK(
             *mosaics, q0,
-            guess,  # type: ignore[arg-type]  # None (LK starts at the points) is accepted; the stubs say no
+            cast(Any, guess),  # None (LK starts at the points) is accepted; some stubs say no
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW if guess is not None else 0, **self._lk_params,
         )
         if q1 is None:  # LK gave up on every point
