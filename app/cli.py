@@ -19,7 +19,7 @@ from app.config import Config, explain, load_config, to_yaml
 from app.errors import UsageError, UserError
 
 if TYPE_CHECKING:
-    from app.sim.simulate import Encounter
+    from app.sim.simulate import Encounter, EncounterResult
 
 log = logging.getLogger("midair")
 
@@ -134,6 +134,19 @@ def _parser() -> argparse.ArgumentParser:
                    "D435i's colour: 30 or 60), frames/s")
     m.add_argument("--own-speed", type=float, default=0.0, help="single encounter: the vehicle's "
                    "forward speed (Mission leg), m/s; 0 hovers")
+    m.add_argument("--resume", type=Path, metavar="DIR", help="campaign: continue the one in DIR "
+                   "(same command line otherwise), running only the encounters its encounters.csv lacks")
+    m.add_argument("--ray", nargs="?", const="local", metavar="ADDRESS", help="campaign: run the "
+                   "encounters as Ray tasks, on a local Ray runtime or (ADDRESS: auto, HOST:6379) on "
+                   "a running cluster; needs pip install '.[cluster]'")
+    m.add_argument("--realtime-object-free", action="store_true", help="fly the object-free minutes "
+                   "in real time through the full loop (default: faster than real time, re-flying "
+                   "in real time any flight that would have commanded something)")
+    m.add_argument("--world", metavar="MODULE:FACTORY", default="", help="render encounters with "
+                   "another world: FACTORY(seed) returns an object with camera() and render() "
+                   "(docs/commands.md, 'Your own world'); default: the built-in world")
+    m.add_argument("compare", nargs="*", metavar="compare A B", help="instead: say whether two "
+                   "campaign folders' success rates differ beyond chance (paired by encounter)")
     with_config(m)
 
     c = sub.add_parser("config", help="print the configuration as commented YAML "
@@ -418,12 +431,19 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         from app.sim.simulate import Encounter
     except ImportError as exc:  # pymavlink (the simulated PX4) missing
         raise UsageError(f"simulate needs the simulated PX4's packages: {exc}") from None
+    if args.compare:
+        return _compare(args.compare)
     if args.trigger:
         cfg = with_trigger(cfg, args.trigger)
+    if args.world:
+        from app.sim.world import load_world
+
+        load_world(args.world, args.seed)  # a bad spec fails here, not in every worker
     t0 = time.monotonic()
-    if args.campaign is None and not args.object_free and not args.wide_passes:
+    if args.campaign is None and not args.object_free and not args.wide_passes and not args.resume:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
-                        miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps)
+                        miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
+                        world=args.world)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
@@ -434,23 +454,79 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         raise UsageError("--wide-passes and --object-free must not be negative")
     if args.fps not in (30.0, 60.0):
         raise UsageError(f"--fps {args.fps:g}: the D435i's colour stream runs at 30 or 60")
+    from app.sim.results import ResultLog, config_digest
+
+    out = args.resume or args.out
     workers = args.workers or default_workers()
-    encounters = [replace(e, fps=args.fps) for e in sample_encounters(args.campaign or 0, args.seed)]
-    wide = [replace(e, fps=args.fps) for e in wide_passes(args.wide_passes, args.seed)]
-    free = ([replace(e, fps=args.fps) for e in object_free(args.object_free, args.seed)]
+    encounters = [replace(e, fps=args.fps, world=args.world)
+                  for e in sample_encounters(args.campaign or 0, args.seed)]
+    wide = [replace(e, fps=args.fps, world=args.world) for e in wide_passes(args.wide_passes, args.seed)]
+    free = ([replace(e, fps=args.fps, world=args.world) for e in object_free(args.object_free, args.seed)]
             if args.object_free else [])
-
-    def progress(done: int, total: int) -> None:
-        print(f"\rencounters {done}/{total}", end="", file=sys.stderr, flush=True)
-
-    results = run_campaign(cfg, [*encounters, *wide, *free], workers, progress)
-    print(file=sys.stderr)
+    fast = not args.realtime_object_free
+    plan = {"seed": args.seed, "campaign": args.campaign or 0, "wide_passes": args.wide_passes,
+            "object_free_min": args.object_free, "fps": args.fps, "world": args.world,
+            "fast_object_free": fast, "trigger": cfg.decision.trigger, "config": config_digest(cfg)}
+    log = ResultLog(out, plan, resume=args.resume is not None)
+    everything = [*encounters, *wide, *free]
+    bar = _campaign_bar(len(everything), len(log.done),
+                        sum(r.success for r in log.done.values() if r.threat),
+                        sum(r.threat for r in log.done.values()))
+    try:
+        results = run_campaign(cfg, everything, workers, bar, log=log, fast_object_free=fast,
+                               backend="ray" if args.ray else "pool", ray_address=args.ray)
+    except KeyboardInterrupt:
+        print(f"\nmidair: interrupted; {len(log.done)} of {len(everything)} encounters are in "
+              f"{log.path}: continue with the same command and --resume {out}", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+        log.close()
     wall = time.monotonic() - t0
     n, k = len(encounters), len(wide)
-    report = write_report(args.out, results[:n], results[n + k:], cfg, wall,
+    report = write_report(out, results[:n], results[n + k:], cfg, wall,
                           title=f"Campaign of {n} encounters, seed {args.seed}", wide=results[n:n + k])
     print(report.read_text())
-    print(f"wrote {report}, {args.out / 'encounters.csv'} and the plots in {args.out}")
+    print(f"wrote {report}, {out / 'encounters.csv'} and the plots in {out}")
+    return 0
+
+
+class _CampaignBar:
+    """tqdm's bar over a campaign's encounters, with the running success rate of threats."""
+
+    def __init__(self, total: int, done: int, ok: int, threats: int) -> None:
+        from tqdm import tqdm
+
+        self.ok, self.threats = ok, threats
+        self.bar = tqdm(total=total, initial=done, unit="enc", desc="encounters", file=sys.stderr,
+                        disable=None, dynamic_ncols=True)
+
+    def __call__(self, r: EncounterResult) -> None:
+        if r.threat:
+            self.threats += 1
+            self.ok += r.success
+        if self.threats:
+            self.bar.set_postfix_str(f"avoided {self.ok}/{self.threats} ({self.ok / self.threats:.0%})",
+                                     refresh=False)
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _campaign_bar(total: int, done: int, ok: int, threats: int) -> _CampaignBar:
+    return _CampaignBar(total, done, ok, threats)
+
+
+def _compare(words: list[str]) -> int:
+    from app.sim.results import compare, read_results
+
+    if len(words) != 3 or words[0] != "compare":
+        raise UsageError(f"simulate: unexpected {' '.join(words)!r}; to compare two campaigns: "
+                         "midair simulate compare DIR_A DIR_B")
+    a, b = Path(words[1]), Path(words[2])
+    result = compare(read_results(a), read_results(b))
+    print(result.text(str(a), str(b)))
     return 0
 
 

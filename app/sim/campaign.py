@@ -23,10 +23,16 @@ from typing import Any
 import numpy as np
 
 from app.config import Config
-from app.sim.simulate import Encounter, EncounterResult, run_encounter
+from app.sim.fast import run_one
+from app.sim.results import ResultLog, poisson_upper, wilson
+from app.sim.simulate import Encounter, EncounterResult
 
 SPEED_BINS = (2.0, 4.0, 6.0, 8.0, 10.0, 14.0)  # m/s
 ANGLE_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)  # |approach|, deg (sampled to 50; the lens sees +-27.5)
+# A threat counts as "in view" when its centre is inside the image, on its nominal course, for
+# at least this long before the closest approach: perception's ~0.3 s to confirm plus the
+# vehicle's ~1 s to move its clearance (the response model, DecisionConfig.response_*).
+IN_VIEW_S = 1.5
 KINDS = {  # size m, brightness range (sky ~175-215): ball, bird, small drone
     "ball": (0.25, (20, 60)),
     "bird": (0.4, (50, 120)),
@@ -76,34 +82,44 @@ def object_free(minutes: float, seed: int, run_s: float = 30.0) -> list[Encounte
                       altitude_m=round(float(rng.uniform(3.0, 15.0)), 1)) for i in range(n)]
 
 
-def _one(args: tuple[Config, Encounter]) -> EncounterResult:
-    import cv2
-
-    cv2.setNumThreads(1)
-    return run_encounter(*args)
+def _one(args: tuple[Config, Encounter, bool]) -> EncounterResult:
+    return run_one(*args)
 
 
 def run_campaign(cfg: Config, encounters: Sequence[Encounter], workers: int,
-                 progress: Callable[[int, int], None] | None = None) -> list[EncounterResult]:
-    """Run every encounter (in real time) on ``workers`` processes; results in input order."""
-    results: list[EncounterResult | None] = [None] * len(encounters)
-    if workers <= 1:
-        for i, enc in enumerate(encounters):
-            results[i] = _one((cfg, enc))
-            if progress:
-                progress(i + 1, len(encounters))
-    else:
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(_one, (cfg, enc)): i for i, enc in enumerate(encounters)}
-            done = 0
-            from concurrent.futures import as_completed
+                 progress: Callable[[EncounterResult], None] | None = None,
+                 log: ResultLog | None = None, fast_object_free: bool = False,
+                 backend: str = "pool", ray_address: str | None = None) -> list[EncounterResult]:
+    """Run every encounter on ``workers`` processes (threats in real time; object-free
+    flights faster than real time with ``fast_object_free``, see :mod:`app.sim.fast`);
+    results in input order. Each result goes to ``log`` (``encounters.csv``) the moment it
+    is done, and encounters ``log`` already holds are not run again (``--resume``).
+    ``backend`` "ray" hands the encounters to a Ray cluster instead (:mod:`app.sim.cluster`)."""
+    done = dict(log.done) if log is not None else {}
+    todo = [e for e in encounters if e.seed not in done]
 
+    def finished(r: EncounterResult) -> None:
+        done[r.encounter.seed] = r
+        if log is not None:
+            log.append(r)
+        if progress:
+            progress(r)
+
+    if backend == "ray":
+        from app.sim.cluster import run_on_ray
+
+        run_on_ray(cfg, todo, finished, fast_object_free, ray_address)
+    elif workers <= 1:
+        for enc in todo:
+            finished(_one((cfg, enc, fast_object_free)))
+    else:
+        from concurrent.futures import as_completed
+
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
+            futures = [pool.submit(_one, (cfg, enc, fast_object_free)) for enc in todo]
             for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
-                done += 1
-                if progress:
-                    progress(done, len(encounters))
-    return [r for r in results if r is not None]
+                finished(fut.result())
+    return [done[e.seed] for e in encounters if e.seed in done]
 
 
 def default_workers() -> int:
@@ -111,16 +127,6 @@ def default_workers() -> int:
 
 
 # ---------------------------------------------------------------------------- the report
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """Wilson score interval of a rate k/n (95 % for z = 1.96; Wilson 1927)."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def _rate(rows: list[EncounterResult]) -> str:
@@ -159,12 +165,14 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
                  wide: Sequence[EncounterResult] = ()) -> Path:
     """``report.md``, ``encounters.csv`` and PNG plots in ``out``; returns the report's path."""
     out.mkdir(parents=True, exist_ok=True)
-    with (out / "encounters.csv").open("w", newline="") as fh:
+    tmp = out / "encounters.csv.tmp"  # in campaign order; replaces the log streamed as they ran
+    with tmp.open("w", newline="") as fh:
         all_rows = [r.row() for r in [*rows, *wide, *free]]
         if all_rows:
             w = csv.DictWriter(fh, fieldnames=list(all_rows[0]))
             w.writeheader()
             w.writerows(all_rows)
+    tmp.replace(out / "encounters.csv")
     threats = [r for r in rows if r.threat]
     course = [r for r in threats if r.encounter.miss_m < 0.15]
     lines = [f"# {title}", "",
@@ -186,6 +194,12 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     lines.append(line("all threats", threats))
     lines.append(line("collision course (constant bearing, miss < 0.15 m)", course))
     lines.append(line("near misses", [r for r in threats if r.encounter.miss_m >= 0.15]))
+    seen = [r for r in threats if r.in_view_s >= IN_VIEW_S]
+    lines.append(line(f"in the lens's view ≥ {IN_VIEW_S:g} s before CPA", seen))
+    lines.append(line(f"in view < {IN_VIEW_S:g} s (outside the lens until late)",
+                      [r for r in threats if r.in_view_s < IN_VIEW_S]))
+    for label, group in _bins(seen, lambda r: r.encounter.object_speed_mps, SPEED_BINS):
+        lines.append(line(f"in view, object {label} m/s", group))
     for label, group in _bins(threats, lambda r: r.encounter.object_speed_mps, SPEED_BINS):
         lines.append(line(f"object {label} m/s", group))
     for label, group in _bins(threats, lambda r: abs(r.encounter.approach_deg), ANGLE_BINS):
@@ -216,9 +230,22 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     if free:
         minutes = sum(r.encounter.t_cpa_s for r in free) / 60.0
         n_false = sum(r.false_evasions for r in free)
-        per_hour = n_false / (minutes / 60.0) if minutes else math.nan
-        lines += [f"Object-free flight: {minutes:.1f} simulated minutes, {n_false} false evasions "
-                  f"({per_hour:.1f} per hour).", ""]
+        hours = minutes / 60.0
+        per_hour = n_false / hours if hours else math.nan
+        fast = [r for r in free if r.fast_wall_s]
+        how = ""
+        if fast:
+            from app.sim.fast import speed_factor
+
+            refl = sum(1 for r in fast if r.fast_commands)
+            how = (f" Flown faster than real time ({speed_factor(fast):.1f}x per core) through the same "
+                   f"perception and decision, without MAVLink; {refl} flights in which that run would "
+                   f"have commanded something were flown again in real time through the full loop, "
+                   f"and those counts are the ones given ({sum(r.fast_commands or 0 for r in fast)} "
+                   f"commands in the fast runs).")
+        lines += [f"Object-free flight: {minutes:.1f} simulated minutes ({hours:.2f} h), {n_false} false "
+                  f"evasions ({per_hour:.2f} per hour; 95 % upper bound "
+                  f"{poisson_upper(n_false, hours):.2f} per hour, exact Poisson).{how}", ""]
     lat = [r.capture_to_setpoint_p99_ms for r in rows if r.capture_to_setpoint_p99_ms]
     drops = sum(r.frames_dropped for r in rows)
     lines += [f"Latency (capture → setpoint p99 per encounter): median {_median(lat)} ms; "
@@ -229,10 +256,15 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     (out / "summary.json").write_text(json.dumps({
         "encounters": len(rows), "threats": len(threats),
         "success_rate": sum(r.success for r in threats) / len(threats) if threats else None,
+        "in_view_threats": len(seen), "in_view_success_rate":
+            sum(r.success for r in seen) / len(seen) if seen else None,
         "envelope_mps": env, "wall_s": wall_s,
         "wide_passes": len(wide), "unnecessary_evasions": sum(r.evaded for r in wide),
         "false_evasions": sum(r.false_evasions for r in free),
-        "object_free_minutes": sum(r.encounter.t_cpa_s for r in free) / 60.0}, indent=2) + "\n")
+        "object_free_minutes": sum(r.encounter.t_cpa_s for r in free) / 60.0,
+        "false_evasions_per_hour_upper95": poisson_upper(
+            sum(r.false_evasions for r in free), sum(r.encounter.t_cpa_s for r in free) / 3600.0)
+        if free else None}, indent=2) + "\n")
     return out / "report.md"
 
 

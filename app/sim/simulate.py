@@ -24,9 +24,10 @@ from typing import Any
 
 import numpy as np
 
+from app.camera import Intrinsics
 from app.config import Config
 from app.perception.frames import Frame, FrameSource
-from app.sim.world import Sphere, World, WorldStyle
+from app.sim.world import Renderer, Sphere, d435i_color, load_world
 
 VEHICLE_RADIUS_M = 0.25  # a 250-size quadrotor with props: ~0.5 m across
 SAFETY_MARGIN_M = 0.2  # separation beyond the two radii that counts as a clean miss
@@ -52,6 +53,7 @@ class Encounter:
     after_s: float = 1.5  # keep flying this long after closest approach
     fps: float = 30.0
     with_object: bool = True
+    world: str = ""  # "package.module:factory" of another world (app.sim.world.load_world); "": built-in
 
     @property
     def threat(self) -> bool:
@@ -76,6 +78,25 @@ class Encounter:
         start = cpa_vehicle + offset - vel * self.t_cpa_s
         return start, vel
 
+    def in_view_s(self, intr: Intrinsics) -> float:
+        """How long, before the closest approach, the object's centre lies inside the lens's
+        image on the course it would fly had nobody moved (the vehicle hovering or flying its
+        leg, camera level, facing north). A forward camera cannot avoid what it never sees:
+        a collision course from 40° off the nose stays outside a 55° lens to the end."""
+        if not self.with_object:
+            return 0.0
+        start, vel = self.object_path()
+        dt = 1.0 / self.fps
+        t = np.arange(0.0, self.t_cpa_s, dt)
+        vehicle = np.stack([self.own_speed_mps * t, np.zeros_like(t), np.full_like(t, -self.altitude_m)], 1)
+        rel = start + vel * t[:, None] - vehicle  # NED; camera: X = east, Y = down, Z = north
+        z = rel[:, 0]
+        ok = z > 0.3
+        u = intr.fx * rel[:, 1] / np.where(ok, z, 1.0) + intr.ppx
+        v = intr.fy * rel[:, 2] / np.where(ok, z, 1.0) + intr.ppy
+        seen = ok & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
+        return round(float(seen.sum()) * dt, 3)
+
 
 @dataclass
 class Truth:
@@ -97,14 +118,18 @@ class SimulatedCamera(FrameSource):
 
     live = True
 
-    def __init__(self, enc: Encounter, pose: Any, world: World | None = None) -> None:
+    def __init__(self, enc: Encounter, pose: Any, world: Renderer | None = None, paced: bool = True) -> None:
         self.enc = enc
+        # paced: one frame per period on the monotonic clock (the closed loop); else as fast as
+        # it renders, stamped as if paced (faster-than-real-time flights, app.sim.fast)
+        self.paced = paced
         self.pose = pose  # () -> (pos_ned, vel_ned, yaw)
-        self.world = world or World(WorldStyle(seed=enc.seed))
+        self.world = world or load_world(enc.world, enc.seed)
         self.fps = enc.fps
         self.name = f"simulated encounter {enc.seed}"
         self.has_depth = True
-        self.camera = self.world.camera()
+        self.lens = self.world.camera()  # never None here (FrameSource.camera may be)
+        self.camera = self.lens
         self.truth: list[Truth] = []
         self.t_start: float | None = None
         self._start, self._vel = enc.object_path()
@@ -124,11 +149,14 @@ class SimulatedCamera(FrameSource):
         self.t_start = t0
         self._origin = np.asarray(self.pose()[0], float) - np.array([0.0, 0.0, -self.enc.altitude_m])
         for k in range(len(self)):
-            delay = t0 + k * period - time.monotonic()
-            if delay > 0:
-                time.sleep(delay)
-            now = time.monotonic()
-            pos, _vel, yaw = self.pose()
+            if self.paced:
+                delay = t0 + k * period - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                now = time.monotonic()
+            else:
+                now = t0 + k * period
+            pos, _vel, yaw = self.pose(now) if not self.paced else self.pose()
             obj = self.object_at(now - t0) if self.enc.with_object else None
             spheres = ([Sphere(1, (float(obj[0]), float(obj[1]), float(obj[2])), self.enc.size_m,
                                self.enc.grey)] if obj is not None else [])
@@ -146,6 +174,7 @@ class SimulatedCamera(FrameSource):
 class EncounterResult:
     encounter: Encounter
     threat: bool
+    in_view_s: float = 0.0  # nominal time in the lens's view before the closest approach, s
     detected: bool = False
     detect_range_m: float | None = None  # object distance when first tracked
     detect_before_cpa_s: float | None = None  # how long before the closest approach
@@ -166,6 +195,10 @@ class EncounterResult:
     capture_to_setpoint_p99_ms: float | None = None
     wall_s: float = 0.0
     record: str | None = None
+    # object-free flights run faster than real time (app.sim.fast): what the fast run
+    # counted, and its wall time (None: flown in real time only)
+    fast_commands: int | None = None
+    fast_wall_s: float | None = None
 
     def row(self) -> dict[str, object]:
         out = {k: v for k, v in asdict(self).items() if k != "encounter"}
@@ -204,7 +237,8 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
         sim = SimPx4(port, state=state).start()
         connection = f"udpin://0.0.0.0:{port}"
     link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
-    camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry else link.pose)
+    camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry else link.pose,
+                             world=world_for(cfg, enc))
     tmp = None
     if out_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="midair-sim-")
@@ -232,6 +266,12 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     return result
 
 
+def world_for(cfg: Config, enc: Encounter) -> Renderer:
+    """The encounter's world, the built-in one drawn through the lens the configuration
+    streams (``capture.color_width`` x ``color_height`` of a D435i)."""
+    return load_world(enc.world, enc.seed, d435i_color(cfg.capture.color_width, cfg.capture.color_height))
+
+
 def _jsonl(path: Path) -> list[dict[str, Any]]:
     if not path.exists():
         return []
@@ -241,7 +281,8 @@ def _jsonl(path: Path) -> list[dict[str, Any]]:
 def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
             summary: dict[str, object]) -> EncounterResult:
     """Score one run from the camera's truth and the flight record (one monotonic clock)."""
-    res = EncounterResult(enc, enc.threat, frames=len(camera.truth),
+    res = EncounterResult(enc, enc.threat, in_view_s=enc.in_view_s(camera.lens.color),
+                          frames=len(camera.truth),
                           frames_dropped=int(summary.get("frames_dropped", 0)),  # type: ignore[call-overload]
                           capture_to_setpoint_p99_ms=summary.get("capture_to_setpoint_p99_ms"))  # type: ignore[arg-type]
     truth = {t.frame: t for t in camera.truth}

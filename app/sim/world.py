@@ -19,13 +19,16 @@ What is drawn, far to near, and why:
 
 from __future__ import annotations
 
+import importlib
 import math
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import cv2
 import numpy as np
 
 from app.camera import CameraModel, Intrinsics
+from app.errors import UsageError
 
 Vec3 = tuple[float, float, float]
 
@@ -140,9 +143,10 @@ class World:
         res = self.ground_res_m
         t = -rot @ (pos - np.array([37.3, 53.1, 0.0]))  # home away from a tile's corner
         plane = k @ np.column_stack([rot[:, 1] * res, rot[:, 0] * res, t])
-        ground = cv2.warpPerspective(self.ground, plane, (w, h), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_WRAP)
-        grey[horizon:] = ground[horizon:]
+        # only the rows below the horizon: the same pixels, half the work
+        below = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -horizon], [0.0, 0.0, 1.0]]) @ plane
+        grey[horizon:] = cv2.warpPerspective(self.ground, below, (w, h - horizon), flags=cv2.INTER_LINEAR,
+                                             borderMode=cv2.BORDER_WRAP)
         depth = np.zeros((h, w), np.float32)
         v = np.arange(horizon, h, dtype=np.float32)
         z_ground = altitude * intr.fy / np.maximum(v - intr.ppy, 1e-3)
@@ -215,3 +219,66 @@ def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np
     tiled = np.tile(noise, (3 if rows_too else 1, 3))
     blurred = cv2.GaussianBlur(tiled, (0, 0), sigma)
     return blurred[h:2 * h, w:2 * w] if rows_too else blurred[:, w:2 * w]
+
+
+# ---------------------------------------------------------------------------- other worlds
+
+
+@runtime_checkable
+class Renderer(Protocol):
+    """What the closed loop needs of a world (``--world package.module:factory``).
+
+    ``camera()`` is the lens the frames are drawn with (colour; depth registered to it).
+    ``render(position_m, yaw_rad, spheres)`` draws one frame from the vehicle at
+    ``position_m`` (NED, m) facing ``yaw_rad``, camera level, with the objects ``spheres``
+    (NED centre, diameter, brightness) in it, and returns colour (H x W x 3 BGR uint8),
+    depth (H x W uint16, mm, 0 where there is none) and, per object in view, its image
+    circle and distance ``(u px, v px, radius px, z m)`` (the truth the score uses). It may
+    draw an object as anything it likes (a bird, a quadrotor) as long as it reports its
+    circle. It is called once per frame, in order, from one thread.
+    """
+
+    def camera(self) -> CameraModel: ...
+
+    def render(self, position_m: Vec3, yaw_rad: float, spheres: list[Sphere]
+               ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[float, float, float, float]]]: ...
+
+
+# The D435i's colour lens: factory calibrations at 640x480 read fx ~ 615 px (the CameraConfig
+# defaults, app/config.py), i.e. 55 degrees across. Its 4:3 modes are a centre crop of the
+# 16:9 sensor at the same vertical scale, so fx ~ 615 * height / 480 in every mode; at 848x480
+# that gives 2 atan(424 / 615) = 69 degrees across, the datasheet's 69 x 42 degree RGB field
+# (Intel RealSense D400 series datasheet, RGB sensor FOV).
+D435I_COLOR_FX_PER_ROW = 615.0 / 480.0
+
+
+def d435i_color(width: int, height: int) -> Intrinsics:
+    """The colour lens of a D435i streaming ``width`` x ``height`` (pinhole, centred)."""
+    f = D435I_COLOR_FX_PER_ROW * height
+    return Intrinsics(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+
+def load_world(spec: str, seed: int, lens: Intrinsics | None = None) -> Renderer:
+    """The world for one encounter: the built-in one (``spec`` empty; drawn through ``lens``,
+    default 640x480) or ``factory(seed)`` from ``spec`` = "package.module:factory"
+    (importable where the encounter runs; its lens is its own)."""
+    if not spec:
+        if lens is None:
+            return World(WorldStyle(seed=seed))
+        return World(WorldStyle(seed=seed), intrinsics=lens)
+    module_name, sep, attr = spec.partition(":")
+    if not sep or not module_name or not attr:
+        raise UsageError(f"--world {spec!r}: expected package.module:factory")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise UsageError(f"--world {spec!r}: cannot import {module_name} ({exc})") from None
+    factory = getattr(module, attr, None)
+    if not callable(factory):
+        raise UsageError(f"--world {spec!r}: {module_name} has no callable {attr}")
+    world = factory(seed)
+    if not isinstance(world, Renderer):
+        raise UsageError(f"--world {spec!r}: {attr}({seed}) returned {type(world).__name__}, which "
+                         "lacks camera() and render() (app.sim.world.Renderer)")
+    return world
+

@@ -167,30 +167,18 @@ def write_decisions_csv(path: Path, rows: list[tuple[int, Command]]) -> None:
 
 
 class ProgressBar:
-    """A one-line progress bar on a terminal; silent when stderr is not one."""
+    """tqdm's bar over the frames of a replay (with its rate and ETA); on a terminal only."""
 
     def __init__(self, label: str, stream: TextIO = sys.stderr) -> None:
-        self.label = label
-        self.stream = stream
-        self.enabled = stream.isatty()
-        self._last = 0.0
+        from tqdm import tqdm
+
+        self.bar = tqdm(desc=label, unit="frame", file=stream, disable=None, dynamic_ncols=True,
+                        mininterval=0.2)
 
     def __call__(self, done: int, total: int) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if now - self._last < 0.1 and done != total:
-            return
-        self._last = now
-        if total > 0:
-            frac = min(1.0, done / total)
-            bar = "#" * int(30 * frac)
-            self.stream.write(f"\r{self.label} [{bar:<30}] {done}/{total}")
-        else:
-            self.stream.write(f"\r{self.label} {done} frames")
-        self.stream.flush()
+        if total > 0 and self.bar.total != total:
+            self.bar.total = total
+        self.bar.update(done - self.bar.n)
 
     def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\n")
-            self.stream.flush()
+        self.bar.close()

@@ -1,0 +1,245 @@
+"""Campaign machinery: results streamed to disk and resumed, the statistics, object-free flight
+faster than real time, other worlds, and the Ray backend against the local pool."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from app.config import load_config
+from app.decision.policy import EVADE, Command, DecisionMaker
+from app.errors import UsageError
+from app.sim.results import ResultLog, compare, poisson_upper, read_results, result_from_row, wilson
+from app.sim.simulate import Encounter, EncounterResult
+from app.sim.world import World, load_world
+
+pytest.importorskip("mavsdk")
+pytest.importorskip("pymavlink")
+
+from app.cli import main  # noqa: E402
+
+
+def _result(seed: int, success: bool, threat: bool = True, **kw: object) -> EncounterResult:
+    return EncounterResult(Encounter(seed=seed, object_speed_mps=5.5, miss_m=0.1), threat, success=success,
+                           detect_range_m=12.5 if success else None, min_separation_m=0.8,
+                           towards_passage=None if seed % 2 else False, **kw)  # type: ignore[arg-type]
+
+
+def test_a_result_survives_its_csv_row_unchanged(tmp_path: Path) -> None:
+    r = _result(7, True, fast_commands=0, fast_wall_s=1.25, in_view_s=3.2)
+    r.min_separation_m = math.inf
+    path = tmp_path / "x.csv"
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(r.row()))
+        w.writeheader()
+        w.writerow(r.row())
+    with path.open(newline="") as fh:
+        back = result_from_row(next(csv.DictReader(fh)))
+    assert back == r
+
+
+def test_the_log_keeps_what_finished_and_a_resume_skips_it(tmp_path: Path) -> None:
+    plan = {"seed": 1, "campaign": 3}
+    log = ResultLog(tmp_path, plan, resume=False)
+    log.append(_result(1, True))
+    log.append(_result(2, False))
+    log.close()
+    # the run died while writing a third row
+    with (tmp_path / "encounters.csv").open("a") as fh:
+        fh.write("False,True,3.1")
+    again = ResultLog(tmp_path, plan, resume=True)
+    assert sorted(again.done) == [1, 2] and again.done[2].success is False
+    again.append(_result(3, True))
+    again.close()
+    assert [r.encounter.seed for r in read_results(tmp_path)] == [1, 2, 3]
+    # a resume under other settings is refused, naming what differs
+    with pytest.raises(UsageError, match="campaign differ"):
+        ResultLog(tmp_path, {"seed": 1, "campaign": 4}, resume=True)
+    with pytest.raises(UsageError, match="not a campaign folder"):
+        ResultLog(tmp_path / "nowhere", plan, resume=True)
+
+
+def test_poisson_upper_bounds_match_the_exact_tables() -> None:
+    assert poisson_upper(0, 1.0) == pytest.approx(2.996, abs=1e-3)  # "rule of three"
+    assert poisson_upper(0, 15.0) == pytest.approx(0.1997, abs=1e-3)  # 15 h clean: <= 0.2 per hour
+    assert poisson_upper(2, 1.0) == pytest.approx(6.296, abs=1e-3)  # Garwood, one-sided 95 %
+    assert poisson_upper(3, 0.0) == math.inf
+    lo, hi = wilson(8, 10)
+    assert lo == pytest.approx(0.490, abs=1e-3) and hi == pytest.approx(0.943, abs=1e-3)
+
+
+def test_compare_pairs_by_seed_and_tests_only_the_discordant_pairs() -> None:
+    a = [_result(s, True) for s in range(20)]
+    b = [_result(s, s >= 10) for s in range(20)]  # B lost ten A avoided
+    c = compare(a, b)
+    assert (c.pairs, c.a_only, c.b_only) == (20, 10, 0)
+    assert c.p_value == pytest.approx(2 * 0.5 ** 10) and c.differ
+    # two campaigns that differ by one encounter either way: not beyond chance
+    d = compare(a[:19] + [_result(19, False)], [_result(0, False)] + a[1:])
+    assert (d.a_only, d.b_only) == (1, 1) and d.p_value == 1.0 and not d.differ
+    with pytest.raises(UsageError, match="share no threat"):
+        compare(a, [_result(99, True)])
+
+
+def test_compare_on_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for name, results in (("a", [_result(s, True) for s in range(12)]),
+                          ("b", [_result(s, s < 2) for s in range(12)])):
+        log = ResultLog(tmp_path / name, {"seed": 1}, resume=False)
+        for r in results:
+            log.append(r)
+        log.close()
+    assert main(["simulate", "compare", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    out = capsys.readouterr().out
+    assert "avoided by A only: 10, by B only: 0" in out and "differ beyond chance" in out
+    assert main(["simulate", "compare", str(tmp_path / "a")]) == 2
+    assert main(["simulate", "compare", str(tmp_path / "a"), str(tmp_path / "none")]) == 2
+
+
+def test_in_view_time_follows_the_lens() -> None:
+    intr = World().intrinsics  # 55 degrees across
+    head_on = Encounter(approach_deg=0.0, t_cpa_s=4.0)
+    assert head_on.in_view_s(intr) == pytest.approx(4.0, abs=0.05)
+    # a collision course from 40 degrees keeps a constant bearing of 40: never in a 55-degree lens
+    assert Encounter(approach_deg=40.0).in_view_s(intr) == 0.0
+    assert Encounter(with_object=False).in_view_s(intr) == 0.0
+
+
+# ---------------------------------------------------------------------------- fast object-free
+
+
+def test_object_free_flight_faster_than_real_time_runs_the_production_path() -> None:
+    from app.sim.fast import fly_fast, speed_factor
+
+    cfg = load_config(None)
+    enc = Encounter(seed=5, with_object=False, t_cpa_s=3.0, after_s=0.0, own_speed_mps=2.0)
+    a, b = fly_fast(cfg, enc), fly_fast(cfg, enc)
+    assert a.frames == 90 and a.fast_wall_s is not None and a.false_evasions == 0
+    assert (a.false_evasions, a.frames) == (b.false_evasions, b.frames)  # no clock in it
+    assert speed_factor([a]) > 0
+    with pytest.raises(ValueError, match="only object-free"):
+        fly_fast(cfg, Encounter(seed=5))
+
+
+def test_a_command_in_the_fast_run_is_flown_again_in_real_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The fast run is a screen: what it flags is counted by the full closed loop."""
+    from app.sim import fast
+
+    cfg = load_config(None)
+    real_step = DecisionMaker.step
+    calls = {"n": 0}
+
+    def eager(self: DecisionMaker, *args: object, **kw: object) -> tuple[Command, list[object]]:
+        command, objects = real_step(self, *args, **kw)  # type: ignore[arg-type]
+        calls["n"] += 1
+        if calls["n"] == 10:  # the fast run "sees" something once
+            return Command(EVADE, 0.0, 1.0, 0.0, 1, reason="test"), objects  # type: ignore[return-value]
+        return command, objects  # type: ignore[return-value]
+
+    monkeypatch.setattr(fast.DecisionMaker, "step", eager)
+    flown: list[Encounter] = []
+
+    def real_time(cfg_: object, enc: Encounter) -> EncounterResult:
+        flown.append(enc)
+        return EncounterResult(enc, False, false_evasions=0, success=True, frames=60, wall_s=2.0)
+
+    monkeypatch.setattr(fast, "run_encounter", real_time)
+    enc = Encounter(seed=6, with_object=False, t_cpa_s=2.0, after_s=0.0)
+    res = fast.fly_fast(cfg, enc)
+    assert flown == [enc]  # re-flown in real time
+    assert res.fast_commands == 1 and res.false_evasions == 0  # the real-time count is the one kept
+
+
+# ---------------------------------------------------------------------------- other worlds
+
+
+def test_a_world_from_a_module_renders_the_encounter(tmp_path: Path) -> None:
+    from app.sim.fast import fly_fast
+
+    world = load_world("tests._plain_world:factory", 3)
+    assert world.camera().color.width == 320
+    enc = Encounter(seed=3, with_object=False, t_cpa_s=1.0, after_s=0.0, world="tests._plain_world:factory")
+    res = fly_fast(load_config(None), enc)
+    assert res.frames == 30 and res.false_evasions == 0
+    for spec, why in (("nomodule_xyz:factory", "cannot import"), ("tests._plain_world", "expected"),
+                      ("tests._plain_world:missing", "no callable"),
+                      ("tests._plain_world:not_a_world", "lacks camera")):
+        with pytest.raises(UsageError, match=why):
+            load_world(spec, 1)
+    assert main(["simulate", "--object-free", "0.1", "--world", "nomodule_xyz:f", "--out",
+                 str(tmp_path)]) == 2
+
+
+# ---------------------------------------------------------------------------- whole campaigns
+
+
+@pytest.mark.timeout(300)
+def test_an_interrupted_campaign_resumes_without_running_again_what_it_had(tmp_path: Path) -> None:
+    args = ["simulate", "--campaign", "1", "--object-free", "1", "--seed", "4", "--workers", "1",
+            "--out", str(tmp_path)]
+    assert main(args) == 0
+    with (tmp_path / "encounters.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 3  # one threat encounter, two 30 s object-free flights
+    # as if it had been stopped after the first two
+    with (tmp_path / "encounters.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows[:2])
+    assert main([*args, "--resume", str(tmp_path)]) == 0
+    with (tmp_path / "encounters.csv").open(newline="") as fh:
+        again = list(csv.DictReader(fh))
+    assert again[:2] == rows[:2]  # kept as they were (their wall times too): not flown again
+    assert again[2]["enc_seed"] == rows[2]["enc_seed"] and again[2]["frames"] == rows[2]["frames"]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["object_free_minutes"] == 1.0
+    assert summary["false_evasions_per_hour_upper95"] == pytest.approx(
+        poisson_upper(summary["false_evasions"], 1 / 60))
+    # a different command line cannot resume it
+    assert main([*args[:-2], "--seed", "5", "--out", str(tmp_path), "--resume", str(tmp_path)]) == 2
+
+
+@pytest.mark.timeout(300)
+def test_ray_and_the_local_pool_fly_the_same_campaign(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    common = ["simulate", "--campaign", "2", "--object-free", "1", "--seed", "8"]
+    assert main([*common, "--workers", "1", "--out", str(tmp_path / "pool")]) == 0
+    assert main([*common, "--ray", "--out", str(tmp_path / "ray")]) == 0
+    pool, ray = read_results(tmp_path / "pool"), read_results(tmp_path / "ray")
+    assert [r.encounter for r in pool] == [r.encounter for r in ray]  # the same sample, same order
+    # object-free flights faster than real time have no clock in them: identical
+    free_p = [r for r in pool if not r.encounter.with_object]
+    free_r = [r for r in ray if not r.encounter.with_object]
+    assert [(r.frames, r.false_evasions, r.fast_commands) for r in free_p] == \
+           [(r.frames, r.false_evasions, r.fast_commands) for r in free_r]
+    # real-time encounters: the rates agree within their intervals
+    t_p = [r for r in pool if r.threat]
+    t_r = [r for r in ray if r.threat]
+    assert len(t_p) == len(t_r)
+    if t_p:
+        kp, kr, n = sum(r.success for r in t_p), sum(r.success for r in t_r), len(t_p)
+        lo_p, hi_p = wilson(kp, n)
+        lo_r, hi_r = wilson(kr, n)
+        assert lo_p <= kr / n <= hi_p and lo_r <= kp / n <= hi_r
+
+
+def test_ray_missing_or_unreachable_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_ray(name: str, *a: object, **kw: object) -> object:
+        if name == "ray":
+            raise ImportError("No module named 'ray'")
+        return real_import(name, *a, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "__import__", no_ray)
+    cfg = load_config(None)
+    from app.sim.cluster import run_on_ray
+
+    with pytest.raises(UsageError, match=r"pip install 'midair\[cluster\]'"):
+        run_on_ray(cfg, [replace(Encounter(), with_object=False)], lambda r: None, True, None)
