@@ -43,6 +43,15 @@ def test_a_result_survives_its_csv_row_unchanged(tmp_path: Path) -> None:
     assert back == r
 
 
+def test_a_row_of_an_older_campaign_reads_with_defaults_for_new_columns() -> None:
+    row = {k: str(v) for k, v in _result(3, True).row().items()
+           if k not in ("in_view_s", "fast_commands", "fast_wall_s", "enc_world")}
+    row = {k: ("" if v == "None" else v) for k, v in row.items()}
+    back = result_from_row(row)
+    assert back.encounter.seed == 3 and back.encounter.world == "" and back.in_view_s == 0.0
+    assert back.fast_commands is None and back.success is True
+
+
 def test_the_log_keeps_what_finished_and_a_resume_skips_it(tmp_path: Path) -> None:
     plan = {"seed": 1, "campaign": 3}
     log = ResultLog(tmp_path, plan, resume=False)

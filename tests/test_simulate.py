@@ -184,3 +184,5 @@ def test_a_small_campaign_writes_a_report_that_agrees_with_its_encounters(tmp_pa
     assert summary["unnecessary_evasions"] == int(wide["evaded"] == "True")
     report = (tmp_path / "report.md").read_text()
     assert f"{summary['unnecessary_evasions']} of 1 evaded unnecessarily" in report
+    # the envelope map (speed x approach angle) is drawn whenever there are threats
+    assert (tmp_path / "envelope.png").exists() == bool(summary["threats"])

@@ -182,6 +182,7 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
              "|---|---|---|---|---|---|---|"]
+    table_at = len(lines) - 2
 
     def line(name: str, group: list[EncounterResult]) -> str:
         det = sum(r.detected for r in group)
@@ -215,6 +216,8 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     else:
         text = f"holds below {env:g} m/s"
     lines += ["", f"Envelope (success ≥ 90 %): {text}", ""]
+    if not threats:  # an object-free (or wide-pass) run: no table of empty rows
+        del lines[table_at:]
     crossing = [r for r in rows if r.towards_passage is not None]
     if crossing:
         towards = sum(bool(r.towards_passage) for r in crossing)
@@ -248,8 +251,9 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
                   f"{poisson_upper(n_false, hours):.2f} per hour, exact Poisson).{how}", ""]
     lat = [r.capture_to_setpoint_p99_ms for r in rows if r.capture_to_setpoint_p99_ms]
     drops = sum(r.frames_dropped for r in rows)
-    lines += [f"Latency (capture → setpoint p99 per encounter): median {_median(lat)} ms; "
-              f"frames dropped in all: {drops}.", ""]
+    if lat:
+        lines += [f"Latency (capture → setpoint p99 per encounter): median {_median(lat)} ms; "
+                  f"frames dropped in all: {drops}.", ""]
     plots = _plots(out, threats)
     lines += [f"![{p.stem}]({p.name})" for p in plots]
     (out / "report.md").write_text("\n".join(lines) + "\n")
@@ -305,6 +309,26 @@ def _plots(out: Path, threats: list[EncounterResult]) -> list[Path]:
     ax.set_ylabel("evasion started before closest approach, s")
     ax.set_title("Time margin (green: avoided, red: not; below 0: never evaded)")
     paths.append(_save(plt, fig, out / "margin.png"))
+
+    # the envelope map: success per (object speed, approach angle) cell, with its counts
+    grid = np.full((len(ANGLE_BINS) - 1, len(SPEED_BINS) - 1), np.nan)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for i, (_, by_angle) in enumerate(_bins(threats, lambda r: abs(r.encounter.approach_deg), ANGLE_BINS)):
+        for j, (_, cell) in enumerate(_bins(by_angle, lambda r: r.encounter.object_speed_mps, SPEED_BINS)):
+            if cell:
+                k = sum(r.success for r in cell)
+                grid[i, j] = k / len(cell)
+                ax.text(j, i, f"{k}/{len(cell)}", ha="center", va="center", fontsize=9)
+    im = ax.imshow(grid, cmap="RdYlGn", vmin=0.0, vmax=1.0, origin="lower", aspect="auto")
+    ax.set_xticks(range(len(SPEED_BINS) - 1),
+                  [f"{a:g}–{b:g}" for a, b in zip(SPEED_BINS, SPEED_BINS[1:], strict=False)])
+    ax.set_yticks(range(len(ANGLE_BINS) - 1),
+                  [f"{a:g}–{b:g}" for a, b in zip(ANGLE_BINS, ANGLE_BINS[1:], strict=False)])
+    ax.set_xlabel("object speed, m/s")
+    ax.set_ylabel("approach |deg| (0 = head-on)")
+    ax.set_title("Envelope: threats avoided per cell (avoided/flown)")
+    fig.colorbar(im, ax=ax, label="success rate")
+    paths.append(_save(plt, fig, out / "envelope.png"))
     return paths
 
 

@@ -46,11 +46,13 @@ def _parse(text: str, hint: str) -> Any:
 
 
 def result_from_row(row: dict[str, str]) -> EncounterResult:
-    """The inverse of :meth:`EncounterResult.row` (one ``encounters.csv`` row)."""
+    """The inverse of :meth:`EncounterResult.row` (one ``encounters.csv`` row; a column a
+    campaign of an older version did not write takes its default)."""
     hints = typing.get_type_hints(EncounterResult)
     enc_hints = typing.get_type_hints(Encounter)
+    # columns a campaign of an older version did not write take their defaults
     enc = Encounter(**{f.name: _parse(row[f"enc_{f.name}"], _name(enc_hints[f.name]))
-                       for f in dataclasses.fields(Encounter)})
+                       for f in dataclasses.fields(Encounter) if f"enc_{f.name}" in row})
     values = {f.name: _parse(row[f.name], _name(hints[f.name]))
               for f in dataclasses.fields(EncounterResult) if f.name != "encounter" and f.name in row}
     return EncounterResult(encounter=enc, **values)
