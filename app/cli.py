@@ -78,6 +78,8 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="time stages 1-3 on 640x480 frames, windows vs full-frame features")
     b.add_argument("--frames", type=int, default=300)
     b.add_argument("--repeats", type=int, default=5, help="interleaved runs of each variant")
+    b.add_argument("--width", type=int, default=640, choices=(640, 848),
+                   help="frame width at 480 rows: 640 (55 degrees) or 848 (the D435i's full 69)")
     b.add_argument("--warmup", type=float, default=3.0, metavar="S",
                    help="run both variants this long before timing, s")
     b.add_argument("--soak", type=int, default=0, metavar="N",
@@ -312,7 +314,7 @@ def _cmd_bench(args: argparse.Namespace, cfg: Config) -> int:
         raise UsageError(f"--repeats {args.repeats}: must be at least 1")
     if not 0 <= args.warmup <= 600:  # also refuses nan, which would never end the warm-up
         raise UsageError(f"--warmup {args.warmup}: must be between 0 and 600 s")
-    result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak,
+    result = run_bench(cfg, frames=args.frames, repeats=args.repeats, soak_frames=args.soak, width=args.width,
                        warmup_s=args.warmup)
     print(format_bench(result))
     if args.json:

@@ -29,8 +29,8 @@ STAGES = ("detection_ms", "recognition_ms", "tracking_ms", "total_ms")
 CHUNK_FRAMES = 30
 
 
-def _frames(n: int, seed: int) -> list[Frame]:
-    scene = SyntheticScene(width=640, height=480, frames=n, seed=seed)
+def _frames(n: int, seed: int, width: int = 640) -> list[Frame]:
+    scene = SyntheticScene(width=width, height=480, frames=n, seed=seed)
     return [f for f, _ in render(scene)]
 
 
@@ -113,10 +113,10 @@ def warm_up(clip: list[Frame], cfg: Config, seconds: float) -> None:
 
 
 def run_bench(cfg: Config, frames: int = 300, repeats: int = 5, seed: int = 1,
-              soak_frames: int = 0, warmup_s: float = 3.0) -> dict[str, object]:
+              soak_frames: int = 0, warmup_s: float = 3.0, width: int = 640) -> dict[str, object]:
     cv2.setNumThreads(1)
     _pin_to_one_core()
-    clip = _frames(frames, seed)
+    clip = _frames(frames, seed, width)
     # warm-up: first calls allocate, caches fill, and the machine settles (see warm_up)
     warm_up(clip, cfg, warmup_s)
     # Interleaved in short turns, so that both variants run at the same speed of a shared machine.
@@ -131,7 +131,7 @@ def run_bench(cfg: Config, frames: int = 300, repeats: int = 5, seed: int = 1,
     win = {k: np.concatenate([r[k] for r in runs_w]) for k in STAGES}
     full = {k: np.concatenate([r[k] for r in runs_f]) for k in STAGES}
     result: dict[str, object] = {
-        "frame_size": "640x480",
+        "frame_size": f"{width}x480",
         "opencv_threads": cv2.getNumThreads(),
         "frames_timed": int(len(win["total_ms"])),
         "windows": {k.removesuffix("_ms"): _stats(v) for k, v in win.items()},
