@@ -9,6 +9,7 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.config import load_config
@@ -252,3 +253,25 @@ def test_ray_missing_or_unreachable_is_a_clear_error(tmp_path: Path, monkeypatch
 
     with pytest.raises(UsageError, match=r"pip install 'midair\[cluster\]'"):
         run_on_ray(cfg, [replace(Encounter(), with_object=False)], lambda r: None, True, None)
+
+
+def test_the_shaped_world_draws_flapping_birds_and_quadrotors_inside_their_circle() -> None:
+    from app.sim.world import Sphere, shaped
+
+    world = shaped(3)
+    masks = []
+    for kind in ("bird", "bird", "bird", "drone"):
+        obj = Sphere(1, (4.0, 0.0, -6.5), 0.5, 40, kind)
+        colour, _depth, seen = world.render((0.0, 0.0, -6.0), 0.0, [obj])
+        u, v, r, _z = seen[1]
+        dark = colour[:, :, 0] < 100
+        dark[int(v) + 30:] = False  # the ground and the trees below the horizon are not the object
+        ys, xs = dark.nonzero()
+        assert ys.size and (np.hypot(xs - u, ys - v) <= r + 2).all()  # inside the reported circle
+        masks.append(dark)
+    assert (masks[0] != masks[1]).sum() > 20  # the wings beat from frame to frame
+    assert masks[3].sum() < 0.6 * math.pi * r * r  # a quadrotor's cross, not a filled disc
+    # the sky drifts even with the vehicle still
+    a, _, _ = world.render((0.0, 0.0, -6.0), 0.0, [])
+    b, _, _ = world.render((0.0, 0.0, -6.0), 0.0, [])
+    assert np.abs(a[:100].astype(int) - b[:100].astype(int)).mean() > 0.3

@@ -159,7 +159,7 @@ class SimulatedCamera(FrameSource):
             pos, _vel, yaw = self.pose(now) if not self.paced else self.pose()
             obj = self.object_at(now - t0) if self.enc.with_object else None
             spheres = ([Sphere(1, (float(obj[0]), float(obj[1]), float(obj[2])), self.enc.size_m,
-                               self.enc.grey)] if obj is not None else [])
+                               self.enc.grey, self.enc.kind)] if obj is not None else [])
             vehicle = (float(pos[0]), float(pos[1]), float(pos[2]))
             colour, depth, seen = self.world.render(vehicle, yaw, spheres)
             where = None if obj is None else (float(obj[0]), float(obj[1]), float(obj[2]))

@@ -51,6 +51,7 @@ class Sphere:
     position_m: Vec3  # NED
     diameter_m: float
     grey: int  # 0..255
+    kind: str = "ball"  # ball, bird or drone: its silhouette when the style draws shapes
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,13 @@ class WorldStyle:
     # σ(z) ≈ 0.0036 z²: 0.09 m at 5 m, 0.36 m at 10 m. 0 = perfect depth. Applied as noise
     # in disparity, where stereo errs (see render).
     depth_subpixel: float = 0.08
+    # Opt-in (the `shaped` world): objects drawn by kind (a bird's body with flapping wings,
+    # a quadrotor's cross of arms and rotors, a ball's disc) instead of every one as a disc;
+    # clouds that drift across the sky at this many px per frame.
+    shapes: bool = False
+    flap_hz: float = 4.0  # wing beats per second (a pigeon flaps at ~5 Hz, gulls ~3 Hz)
+    fps: float = 30.0  # frames per second the flapping and drift are timed by
+    cloud_drift_px: float = 0.0
 
 
 D435I_BASELINE_M = 0.050  # stereo baseline of the D435/D435i (Intel D400 datasheet)
@@ -134,7 +142,8 @@ class World:
 
         # sky: columns by heading
         horizon = int(math.floor(intr.ppy)) + 1  # rows above see sky (level camera)
-        shift = int(round(yaw_rad * intr.fx)) % self.sky.shape[1]
+        drift = self.style.cloud_drift_px * self._k
+        shift = int(round(yaw_rad * intr.fx + drift)) % self.sky.shape[1]
         cols = (np.arange(w) - int(intr.ppx) + shift + self.sky.shape[1] // 2) % self.sky.shape[1]
         grey = np.empty((h, w), np.uint8)
         grey[:horizon] = self.sky[:horizon][:, cols]
@@ -187,7 +196,10 @@ class World:
             if not (-r < u < w + r and -r < vv < h + r):
                 continue
             mask = np.zeros((h, w), np.uint8)
-            cv2.circle(mask, (int(round(u)), int(round(vv))), max(1, int(round(r))), 255, -1, cv2.LINE_AA)
+            if self.style.shapes and sp.kind in ("bird", "drone"):
+                _silhouette(mask, sp.kind, u, vv, r, self._k / max(self.style.fps, 1.0) * self.style.flap_hz)
+            else:
+                cv2.circle(mask, (int(round(u)), int(round(vv))), max(1, int(round(r))), 255, -1, cv2.LINE_AA)
             alpha = mask.astype(np.float32) / 255.0
             grey = (grey * (1 - alpha) + sp.grey * alpha).astype(np.uint8)
             depth[mask > 127] = float(p[2])
@@ -211,6 +223,43 @@ class World:
             np.divide(fb, disparity, out=depth, where=valid & (disparity > fb / 1000.0))
         depth[(depth > self.max_depth_m) | (depth < 0.2)] = 0.0
         return colour, (depth * 1000.0).astype(np.uint16), seen
+
+
+def _silhouette(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float) -> None:
+    """A bird (body ellipse, two wings whose tips beat up and down ``beats`` cycles in) or a
+    quadrotor (two crossed arms and four rotor discs) of half-span ``r`` px centred at (u, v),
+    drawn into ``mask`` at 255."""
+    c = (int(round(u)), int(round(v)))
+    span = max(1.0, r)
+    if kind == "bird":
+        cv2.ellipse(mask, c, (max(1, int(span * 0.45)), max(1, int(span * 0.18))), 0, 0, 360, 255, -1,
+                    cv2.LINE_AA)
+        # wing tips on the circle, beating 35 degrees above and below the body
+        angle = math.radians(35.0) * math.sin(2 * math.pi * beats)
+        for side in (-1, 1):
+            tip = (u + side * span * math.cos(angle) * 0.97, v - span * math.sin(angle) * 0.97)
+            root = u + side * span * 0.15
+            pts = np.array([(root, v - span * 0.1), tip, (root, v + span * 0.1)], np.float64)
+            pts = pts.round().astype(np.int32)
+            cv2.fillConvexPoly(mask, pts, 255, cv2.LINE_AA)
+    else:  # drone: an X of arms with a rotor at each end (seen from the front, foreshortened)
+        arm = max(1, int(round(span * 0.12)))
+        for dx, dy in ((1, 0.35), (1, -0.35)):
+            a = (int(round(u - dx * span * 0.75)), int(round(v - dy * span * 0.75)))
+            b = (int(round(u + dx * span * 0.75)), int(round(v + dy * span * 0.75)))
+            cv2.line(mask, a, b, 255, arm, cv2.LINE_AA)
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                rotor = (int(round(u + sx * span * 0.75)), int(round(v + sy * span * 0.27)))
+                axes = (max(1, int(span * 0.25)), max(1, int(span * 0.08)))
+                cv2.ellipse(mask, rotor, axes, 0, 0, 360, 255, -1, cv2.LINE_AA)
+        cv2.circle(mask, c, max(1, int(span * 0.18)), 255, -1, cv2.LINE_AA)
+
+
+def shaped(seed: int) -> World:
+    """The built-in world with birds and quadrotors drawn as such (not discs) and clouds that
+    drift (``--world app.sim.world:shaped``): perception not tuned to balls against a still sky."""
+    return World(WorldStyle(seed=seed, shapes=True, cloud_drift_px=0.4))
 
 
 def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np.ndarray:
