@@ -145,7 +145,7 @@ def _parser() -> argparse.ArgumentParser:
                    "in real time through the full loop (default: faster than real time, re-flying "
                    "in real time any flight that would have commanded something)")
     m.add_argument("--world", metavar="MODULE:FACTORY", default="", help="render encounters with "
-                   "another world: FACTORY(seed) returns an object with camera() and render() "
+                   "another world: FACTORY(seed, lens) returns an object with camera() and render() "
                    "(docs/commands.md, 'Your own world'); default: the built-in world")
     m.add_argument("compare", nargs="*", metavar="compare A B", help="instead: say whether two "
                    "campaign folders' success rates differ beyond chance (paired by encounter)")
@@ -438,9 +438,9 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     if args.trigger:
         cfg = with_trigger(cfg, args.trigger)
     if args.world:
-        from app.sim.world import load_world
+        from app.sim.simulate import world_for
 
-        load_world(args.world, args.seed)  # a bad spec fails here, not in every worker
+        world_for(cfg, Encounter(seed=args.seed, world=args.world))  # fails here, not in every worker
     t0 = time.monotonic()
     if args.campaign is None and not args.object_free and not args.wide_passes and not args.resume:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
@@ -471,9 +471,9 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
             "fast_object_free": fast, "trigger": cfg.decision.trigger, "config": config_digest(cfg)}
     log = ResultLog(out, plan, resume=args.resume is not None)
     everything = [*encounters, *wide, *free]
-    bar = _campaign_bar(len(everything), len(log.done),
-                        sum(r.success for r in log.done.values() if r.threat),
-                        sum(r.threat for r in log.done.values()))
+    bar = _CampaignBar(len(everything), len(log.done),
+                       sum(r.success for r in log.done.values() if r.threat),
+                       sum(r.threat for r in log.done.values()))
     try:
         results = run_campaign(cfg, everything, workers, bar, log=log, fast_object_free=fast,
                                backend="ray" if args.ray else "pool", ray_address=args.ray)
@@ -514,10 +514,6 @@ class _CampaignBar:
 
     def close(self) -> None:
         self.bar.close()
-
-
-def _campaign_bar(total: int, done: int, ok: int, threats: int) -> _CampaignBar:
-    return _CampaignBar(total, done, ok, threats)
 
 
 def _compare(words: list[str]) -> int:

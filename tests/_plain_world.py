@@ -45,9 +45,9 @@ class PlainWorld:
         return np.repeat(colour[:, :, None], 3, axis=2), depth, seen
 
 
-def factory(seed: int) -> PlainWorld:
-    return PlainWorld(seed)
+def factory(seed: int, lens: object) -> PlainWorld:
+    return PlainWorld(seed)  # its own lens, whatever the configuration streams
 
 
-def not_a_world(seed: int) -> object:
+def not_a_world(seed: int, lens: object) -> object:
     return object()

@@ -70,6 +70,10 @@ def test_the_log_keeps_what_finished_and_a_resume_skips_it(tmp_path: Path) -> No
     # a resume under other settings is refused, naming what differs
     with pytest.raises(UsageError, match="campaign differ"):
         ResultLog(tmp_path, {"seed": 1, "campaign": 4}, resume=True)
+    # a fresh run into a folder that holds results would overwrite them: refused
+    with pytest.raises(UsageError, match=r"already holds a campaign's results \(3 encounters"):
+        ResultLog(tmp_path, plan, resume=False)
+    assert len(read_results(tmp_path)) == 3
     with pytest.raises(UsageError, match="not a campaign folder"):
         ResultLog(tmp_path / "nowhere", plan, resume=True)
 
@@ -170,7 +174,7 @@ def test_a_command_in_the_fast_run_is_flown_again_in_real_time(monkeypatch: pyte
 def test_a_world_from_a_module_renders_the_encounter(tmp_path: Path) -> None:
     from app.sim.fast import fly_fast
 
-    world = load_world("tests._plain_world:factory", 3)
+    world = load_world("tests._plain_world:factory", 3, World().intrinsics)
     assert world.camera().color.width == 320
     enc = Encounter(seed=3, with_object=False, t_cpa_s=1.0, after_s=0.0, world="tests._plain_world:factory")
     res = fly_fast(load_config(None), enc)
@@ -179,7 +183,7 @@ def test_a_world_from_a_module_renders_the_encounter(tmp_path: Path) -> None:
                       ("tests._plain_world:missing", "no callable"),
                       ("tests._plain_world:not_a_world", "lacks camera")):
         with pytest.raises(UsageError, match=why):
-            load_world(spec, 1)
+            load_world(spec, 1, World().intrinsics)
     assert main(["simulate", "--object-free", "0.1", "--world", "nomodule_xyz:f", "--out",
                  str(tmp_path)]) == 2
 
@@ -258,7 +262,7 @@ def test_ray_missing_or_unreachable_is_a_clear_error(tmp_path: Path, monkeypatch
 def test_the_shaped_world_draws_flapping_birds_and_quadrotors_inside_their_circle() -> None:
     from app.sim.world import Sphere, shaped
 
-    world = shaped(3)
+    world = shaped(3, World().intrinsics)
     masks = []
     for kind in ("bird", "bird", "bird", "drone"):
         obj = Sphere(1, (4.0, 0.0, -6.5), 0.5, 40, kind)

@@ -82,10 +82,6 @@ def object_free(minutes: float, seed: int, run_s: float = 30.0) -> list[Encounte
                       altitude_m=round(float(rng.uniform(3.0, 15.0)), 1)) for i in range(n)]
 
 
-def _one(args: tuple[Config, Encounter, bool]) -> EncounterResult:
-    return run_one(*args)
-
-
 def run_campaign(cfg: Config, encounters: Sequence[Encounter], workers: int,
                  progress: Callable[[EncounterResult], None] | None = None,
                  log: ResultLog | None = None, fast_object_free: bool = False,
@@ -111,12 +107,12 @@ def run_campaign(cfg: Config, encounters: Sequence[Encounter], workers: int,
         run_on_ray(cfg, todo, finished, fast_object_free, ray_address)
     elif workers <= 1:
         for enc in todo:
-            finished(_one((cfg, enc, fast_object_free)))
+            finished(run_one(cfg, enc, fast_object_free))
     else:
         from concurrent.futures import as_completed
 
         with ProcessPoolExecutor(workers, mp_context=get_context("spawn")) as pool:
-            futures = [pool.submit(_one, (cfg, enc, fast_object_free)) for enc in todo]
+            futures = [pool.submit(run_one, cfg, enc, fast_object_free) for enc in todo]
             for fut in as_completed(futures):
                 finished(fut.result())
     return [done[e.seed] for e in encounters if e.seed in done]

@@ -59,15 +59,15 @@ def run_on_ray(cfg: Config, encounters: Sequence[Encounter],
     try:
         task = ray.remote(_task)
         cfg_ref = ray.put(cfg)  # once, not once per task
-        pending = {}
-        for enc in encounters:
-            cpus = FAST_CPUS if fast_object_free and not enc.with_object else REALTIME_CPUS
-            ref = task.options(num_cpus=cpus, max_retries=MAX_RETRIES).remote(cfg_ref, enc, fast_object_free)
-            pending[ref] = enc
+
+        def cpus(enc: Encounter) -> int:
+            return FAST_CPUS if fast_object_free and not enc.with_object else REALTIME_CPUS
+
+        pending = [task.options(num_cpus=cpus(enc), max_retries=MAX_RETRIES)
+                   .remote(cfg_ref, enc, fast_object_free) for enc in encounters]
         while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
+            ready, pending = ray.wait(pending, num_returns=1)
             for ref in ready:
-                pending.pop(ref)
                 finished(ray.get(ref))
     finally:
         if started_here:

@@ -14,10 +14,9 @@ a command is flown again in real time through the full closed loop
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
-
-import numpy as np
 
 from app.config import Config
 from app.decision.policy import NONE, DecisionMaker
@@ -32,12 +31,10 @@ class _Script:
 
     altitude_m: float
     speed_mps: float
-    t0: float = 0.0
 
-    def __call__(self, t: float | None = None
+    def __call__(self, t: float = 0.0
                  ) -> tuple[tuple[float, float, float], tuple[float, float, float], float]:
-        dt = 0.0 if t is None else max(0.0, t - self.t0)
-        return (self.speed_mps * dt, 0.0, -self.altitude_m), (self.speed_mps, 0.0, 0.0), 0.0
+        return (self.speed_mps * t, 0.0, -self.altitude_m), (self.speed_mps, 0.0, 0.0), 0.0
 
 
 def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResult:
@@ -48,17 +45,14 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
         raise ValueError("fly_fast: only object-free flights can run faster than real time "
                          "(with an object the vehicle's response feeds back into the camera)")
     wall0 = time.monotonic()
-    script = _Script(enc.altitude_m, enc.own_speed_mps, t0=time.monotonic())
-    camera = SimulatedCamera(enc, script, world=world_for(cfg, enc), paced=False)
-    # the camera's clock starts when iteration starts; the script's origin with it
+    camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
+                             paced=False)
     perception = Perception(cfg.perception)
     decider = DecisionMaker(cfg.decision, camera.lens,
                             mask_growth_px=cfg.perception.detection.dilate_ksize - 1)
     command_frames: list[int] = []
     frames = 0
     for frame in camera:
-        if frames == 0:
-            script.t0 = frame.t_s
         frames += 1
         result = perception.push(frame)
         if result is None:
@@ -74,7 +68,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
         res.fast_commands = episodes
         res.fast_wall_s = round(wall, 2)
         return res
-    return EncounterResult(enc, False, in_view_s=0.0, false_evasions=episodes, success=episodes == 0,
+    return EncounterResult(enc, False, false_evasions=episodes, success=episodes == 0,
                            frames=frames, wall_s=round(wall, 2), fast_commands=episodes,
                            fast_wall_s=round(wall, 2))
 
@@ -95,4 +89,4 @@ def speed_factor(results: list[EncounterResult]) -> float:
     one core)."""
     flown = sum(r.encounter.t_cpa_s + r.encounter.after_s for r in results if r.fast_wall_s)
     wall = sum(r.fast_wall_s or 0.0 for r in results)
-    return float(flown / wall) if wall > 0 else float(np.nan)
+    return flown / wall if wall > 0 else math.nan

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -30,40 +31,35 @@ CSV_NAME = "encounters.csv"
 PLAN_NAME = "campaign.json"
 
 
-def _parse(text: str, hint: str) -> Any:
-    """One CSV cell back to the type its field annotation names ('' is None)."""
-    if text == "" and "None" in hint:
+def _parse(text: str, hint: Any) -> Any:
+    """One CSV cell back to the type of its field (``hint``, resolved; '' is None)."""
+    args = typing.get_args(hint) or (hint,)
+    if text == "" and type(None) in args:
         return None
-    if hint.startswith("bool"):
+    base = next(a for a in args if a is not type(None))
+    if base is bool:
         if text not in ("True", "False"):
             raise ValueError(f"not a bool: {text!r}")
         return text == "True"
-    if hint.startswith("int"):
-        return int(text)
-    if hint.startswith("float"):
-        return float(text)
+    if base in (int, float):
+        return base(text)
     return text
+
+
+@functools.cache
+def _hints() -> tuple[dict[str, Any], dict[str, Any]]:
+    return typing.get_type_hints(EncounterResult), typing.get_type_hints(Encounter)
 
 
 def result_from_row(row: dict[str, str]) -> EncounterResult:
     """The inverse of :meth:`EncounterResult.row` (one ``encounters.csv`` row; a column a
     campaign of an older version did not write takes its default)."""
-    hints = typing.get_type_hints(EncounterResult)
-    enc_hints = typing.get_type_hints(Encounter)
-    # columns a campaign of an older version did not write take their defaults
-    enc = Encounter(**{f.name: _parse(row[f"enc_{f.name}"], _name(enc_hints[f.name]))
+    hints, enc_hints = _hints()
+    enc = Encounter(**{f.name: _parse(row[f"enc_{f.name}"], enc_hints[f.name])
                        for f in dataclasses.fields(Encounter) if f"enc_{f.name}" in row})
-    values = {f.name: _parse(row[f.name], _name(hints[f.name]))
+    values = {f.name: _parse(row[f.name], hints[f.name])
               for f in dataclasses.fields(EncounterResult) if f.name != "encounter" and f.name in row}
     return EncounterResult(encounter=enc, **values)
-
-
-def _name(hint: Any) -> str:
-    """'float | None', 'bool', ... from a resolved annotation."""
-    text = str(hint).replace("typing.", "").replace("<class '", "").replace("'>", "")
-    if "Optional[" in text:
-        text = text.replace("Optional[", "").rstrip("]") + " | None"
-    return text
 
 
 def config_digest(cfg: object) -> str:
@@ -74,9 +70,9 @@ def config_digest(cfg: object) -> str:
 class ResultLog:
     """``encounters.csv`` in ``folder``, written as results arrive.
 
-    ``plan`` is what the campaign was asked for (seed, counts, fps, config fingerprint); a
-    folder that already holds another plan is refused unless ``resume`` is False and it is
-    empty of results (a fresh run over an old folder starts the log afresh)."""
+    ``plan`` is what the campaign was asked for (seed, counts, fps, config fingerprint). With
+    ``resume`` the folder must hold the same plan, and its results are kept; without, a folder
+    that already holds results is refused (nothing is overwritten)."""
 
     def __init__(self, folder: Path, plan: dict[str, Any], resume: bool) -> None:
         self.folder = folder
@@ -95,12 +91,22 @@ class ResultLog:
             for r in self._read():
                 self.done[r.encounter.seed] = r
         else:
+            held = self._count_rows()
+            if held:
+                raise UsageError(f"{folder} already holds a campaign's results ({held} encounters in "
+                                 f"{CSV_NAME}): --resume {folder} continues it; or choose another --out")
             self.path.unlink(missing_ok=True)
             plan_path.write_text(json.dumps(plan, indent=2) + "\n")
         self._fh = self.path.open("a", newline="")
         self._writer: csv.DictWriter[str] | None = None
         if self.done:
             self._writer = csv.DictWriter(self._fh, fieldnames=list(next(iter(self.done.values())).row()))
+
+    def _count_rows(self) -> int:
+        if not self.path.exists():
+            return 0
+        with self.path.open(newline="") as fh:
+            return sum(1 for _ in csv.DictReader(fh))
 
     def _read(self) -> list[EncounterResult]:
         if not self.path.exists():

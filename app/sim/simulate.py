@@ -118,13 +118,14 @@ class SimulatedCamera(FrameSource):
 
     live = True
 
-    def __init__(self, enc: Encounter, pose: Any, world: Renderer | None = None, paced: bool = True) -> None:
+    def __init__(self, enc: Encounter, pose: Any, world: Renderer, paced: bool = True) -> None:
         self.enc = enc
         # paced: one frame per period on the monotonic clock (the closed loop); else as fast as
         # it renders, stamped as if paced (faster-than-real-time flights, app.sim.fast)
         self.paced = paced
-        self.pose = pose  # () -> (pos_ned, vel_ned, yaw)
-        self.world = world or load_world(enc.world, enc.seed)
+        # () -> (pos_ned, vel_ned, yaw) when paced; (seconds since the first frame) -> the same
+        self.pose = pose
+        self.world = world
         self.fps = enc.fps
         self.name = f"simulated encounter {enc.seed}"
         self.has_depth = True
@@ -156,7 +157,7 @@ class SimulatedCamera(FrameSource):
                 now = time.monotonic()
             else:
                 now = t0 + k * period
-            pos, _vel, yaw = self.pose(now) if not self.paced else self.pose()
+            pos, _vel, yaw = self.pose() if self.paced else self.pose(now - t0)
             obj = self.object_at(now - t0) if self.enc.with_object else None
             spheres = ([Sphere(1, (float(obj[0]), float(obj[1]), float(obj[2])), self.enc.size_m,
                                self.enc.grey, self.enc.kind)] if obj is not None else [])

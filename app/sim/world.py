@@ -256,10 +256,10 @@ def _silhouette(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats
         cv2.circle(mask, c, max(1, int(span * 0.18)), 255, -1, cv2.LINE_AA)
 
 
-def shaped(seed: int) -> World:
+def shaped(seed: int, lens: Intrinsics) -> World:
     """The built-in world with birds and quadrotors drawn as such (not discs) and clouds that
     drift (``--world app.sim.world:shaped``): perception not tuned to balls against a still sky."""
-    return World(WorldStyle(seed=seed, shapes=True, cloud_drift_px=0.4))
+    return World(WorldStyle(seed=seed, shapes=True, cloud_drift_px=0.4), intrinsics=lens)
 
 
 def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np.ndarray:
@@ -307,13 +307,12 @@ def d435i_color(width: int, height: int) -> Intrinsics:
     return Intrinsics(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
 
 
-def load_world(spec: str, seed: int, lens: Intrinsics | None = None) -> Renderer:
-    """The world for one encounter: the built-in one (``spec`` empty; drawn through ``lens``,
-    default 640x480) or ``factory(seed)`` from ``spec`` = "package.module:factory"
-    (importable where the encounter runs; its lens is its own)."""
+def load_world(spec: str, seed: int, lens: Intrinsics) -> Renderer:
+    """The world for one encounter: the built-in one (``spec`` empty) or ``factory(seed,
+    lens)`` from ``spec`` = "package.module:factory" (importable where the encounter runs);
+    ``lens`` is the colour lens the configuration streams, which a world may follow or not
+    (its ``camera()`` says which it drew with)."""
     if not spec:
-        if lens is None:
-            return World(WorldStyle(seed=seed))
         return World(WorldStyle(seed=seed), intrinsics=lens)
     module_name, sep, attr = spec.partition(":")
     if not sep or not module_name or not attr:
@@ -325,9 +324,9 @@ def load_world(spec: str, seed: int, lens: Intrinsics | None = None) -> Renderer
     factory = getattr(module, attr, None)
     if not callable(factory):
         raise UsageError(f"--world {spec!r}: {module_name} has no callable {attr}")
-    world = factory(seed)
+    world = factory(seed, lens)
     if not isinstance(world, Renderer):
-        raise UsageError(f"--world {spec!r}: {attr}({seed}) returned {type(world).__name__}, which "
+        raise UsageError(f"--world {spec!r}: {attr}({seed}, lens) returned {type(world).__name__}, which "
                          "lacks camera() and render() (app.sim.world.Renderer)")
     return world
 
