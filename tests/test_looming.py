@@ -143,3 +143,43 @@ def test_too_few_samples_or_no_expansion_give_no_time_to_contact() -> None:
     est, t, _, _ = fly((1.0, 0.0, 20.0), (-2.0, 0.0, 0.0), 0.6)  # crossing, no closing
     e = est.estimate(t)
     assert e is not None and e.tau_s is None and e.miss_sizes is None
+
+
+def test_the_course_in_object_sizes_is_exact_over_a_long_window() -> None:
+    """From 14 m to 4 m in 1.2 s (the size grows 3.5x): ln(size) is far from a straight
+    line, 1/size is one; over a 1.2 s window τ, the crossing point and the course in object
+    diameters (P/D, V/D) come out as the geometry has them."""
+    d = 0.3
+    est = LoomingEstimator(K, window_s=1.2)
+    est, t, p, v = fly((0.9, -0.4, 14.0), (-0.3, 0.2, -8.3), 1.2, d, est=est)
+    e = est.estimate(t)
+    assert e is not None and e.tau_s is not None and e.miss_sizes is not None
+    assert e.position_sizes is not None and e.velocity_sizes is not None
+    tau, miss = truth(p, v, d)
+    assert e.tau_s == pytest.approx(tau, rel=0.01)
+    assert e.miss_sizes == pytest.approx(miss, abs=0.05)
+    # box corners are whole pixels here only where the frame cuts them; the course is in
+    # object sizes (metres / D)
+    assert e.position_sizes == pytest.approx(tuple(p / d), rel=0.02, abs=0.05)
+    assert e.velocity_sizes == pytest.approx(tuple(v / d), rel=0.02, abs=0.1)
+    assert e.size_chi2 < 1.0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sizes_that_jump_like_clutter_give_no_time_to_contact(seed: int) -> None:
+    """A blob whose size jumps by up to half from frame to frame (a cloud's edge, a merged blob)
+    on top of a real approach: no constant-velocity course explains it, so no τ, however
+    the straight line through it happens to slope; the same course with 1 px of noise has one."""
+    rng = np.random.default_rng(seed)
+    jumpy, clean = LoomingEstimator(K, window_s=1.0), LoomingEstimator(K, window_s=1.0)
+    p0, v = np.array([0.5, 0.2, 12.0]), np.array([0.0, 0.0, -6.0])
+    for i in range(31):
+        t = i / FPS
+        x, y, w, h = box_of(p0 + v * t, 0.3)
+        f = 1.0 + rng.uniform(-0.5, 0.5)
+        jumpy.add(t, (x, y, w * f, h * f))
+        n = rng.normal(0, 1.0, 4)
+        clean.add(t, (x + n[0], y + n[1], w + n[2], h + n[3]))
+    ej, ec = jumpy.estimate(1.0), clean.estimate(1.0)
+    assert ej is not None and ej.size_chi2 > 9.0 and ej.tau_s is None and ej.miss_sizes is None
+    assert ec is not None and ec.tau_s is not None and ec.size_chi2 <= 9.0
