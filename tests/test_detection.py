@@ -311,3 +311,52 @@ def test_a_point_carried_out_of_its_crop_is_not_followed() -> None:
     crops = np.array(det._crops, np.float32)[wid]
     assert ((p1 >= crops[:, :2]) & (p1 < crops[:, 2:])).all()
     assert len(p1) < n_before and sum(followed) == len(p1)
+
+
+def _looming(det: MotionDetector, frames: int, r0: float, growth_px: float,
+             fps: float = 30.0) -> list[np.ndarray | None]:
+    """A dark disc that only grows (a collision course: constant bearing, camera hovering),
+    ``growth_px`` of radius per frame, over a textured scene with sensor noise; the masks."""
+    base = textured(seed=3)
+    rng = np.random.default_rng(0)
+    masks = []
+    for k in range(frames):
+        img = cv2.add(base, rng.integers(0, 3, base.shape, dtype=np.uint8))
+        r = r0 + growth_px * k
+        cv2.circle(img, (320 * 16, 200 * 16), int(round(r * 16)), 25, -1, cv2.LINE_AA, shift=4)
+        masks.append(det.push(img, t_s=k / fps).mask)
+    return masks
+
+
+def _hits_disc(mask: np.ndarray | None, r: float) -> int:
+    assert mask is not None
+    m = np.zeros_like(mask)
+    cv2.circle(m, (320, 200), int(r + 4), 255, -1)
+    return int(cv2.countNonZero(cv2.bitwise_and(mask, m)))
+
+
+def test_an_object_that_only_grows_is_seen_by_the_slow_difference() -> None:
+    """0.2 px of radius a frame (a 0.25 m ball at 9.6 m closing at 7.2 m/s, 30 fps, f = 615
+    px): frame to frame it is below the noise, over 0.2 s it is a ring. With the slow
+    difference off, the same frames show nothing there."""
+    r0, g = 8.0, 0.2
+    slow = _looming(MotionDetector(DetectionConfig()), 20, r0, g)
+    fast = _looming(MotionDetector(DetectionConfig(slow_baseline_s=0.0)), 20, r0, g)
+    r_last = r0 + g * 18  # the newest mask is frame 18's
+    assert _hits_disc(fast[-1], r_last) == 0
+    assert _hits_disc(slow[-1], r_last) >= 20
+    # and only there: the noisy textured background stays out of the mask
+    mask = slow[-1]
+    assert mask is not None
+    outside = mask.copy()
+    cv2.circle(outside, (320, 200), int(r_last + 8), 0, -1)
+    assert cv2.countNonZero(outside) == 0
+
+
+def test_the_slow_difference_waits_for_its_history_and_restarts_after_a_skipped_frame() -> None:
+    det = MotionDetector(DetectionConfig())
+    masks = _looming(det, 8, 8.0, 0.1)  # 0.27 s: less than twice the 0.2 s baseline
+    assert all(m is None or _hits_disc(m, 9.0) == 0 for m in masks)
+    assert det._slow_difference() is None
+    det.push(np.zeros((480, 640), np.uint8), t_s=0.3)  # a scene cut: everything starts again
+    assert len(det._slow) == 0

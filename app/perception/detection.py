@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -122,6 +123,11 @@ class MotionDetector:
         self._t_cur: float | None = None
         self._interval_ratio = 1.0  # (t+1 - t) / (t - t-1) in quarters, 0.25-4
         self._hist_cur: np.ndarray | None = None
+        # the slow difference's history: (time s, frame at half resolution, H from it to frame t)
+        self._slow: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
+        self._small_cur: np.ndarray | None = None  # frame t at half resolution
+        self._t_slow_cur: float | None = None
+        self._frames = 0  # frames pushed (the clock when no capture time is given)
         self._clear_points()
         self._clear_shifts()
         # no motion to go on (start, or the last frame failed): the next flow starts from the
@@ -230,6 +236,7 @@ class MotionDetector:
         timings["flow_ms"] = (t1 - t0) * 1e3
 
         mask, status = self._difference(gray, h_cur_next)
+        self._remember(h_cur_next, t_s)
         if self.featureless and mask is not None:
             status = "featureless"
         timings["difference_ms"] = (time.perf_counter() - t1) * 1e3
@@ -242,11 +249,67 @@ class MotionDetector:
         self._has_prev = True
         self._cur, self._hist_cur, self._mosaic_cur = gray, hist, mosaic_next
         self._t_prev, self._t_cur = self._t_cur, t_s
+        self._set_slow_cur(gray, t_s)
         self._h_prev_cur = h_cur_next
         self._reseed(gray)
         return result
 
+    def _remember(self, h_cur_next: np.ndarray | None, t_s: float | None) -> None:
+        """Frame t joins the slow difference's history, every stored frame's homography is
+        carried on to frame t+1, and what is older than twice the baseline goes. A frame
+        without a homography breaks the chain: the history starts again."""
+        base = self.cfg.slow_baseline_s
+        if base <= 0:
+            return
+        self._frames += 1
+        if h_cur_next is None or self._small_cur is None or self._t_slow_cur is None:
+            self._slow.clear()
+        else:
+            for i, (t, small, h) in enumerate(self._slow):
+                self._slow[i] = (t, small, h_cur_next @ h)
+            self._slow.append((self._t_slow_cur, self._small_cur, h_cur_next.copy()))
+            while self._slow and self._t_slow_cur - self._slow[0][0] > 2 * base + 0.05:
+                self._slow.popleft()
+
+    def _slow_difference(self) -> np.ndarray | None:
+        """Frame t against the registered frames ``slow_baseline_s`` and twice that before it,
+        at half resolution: the smaller of the two differences (a moving object's ghost is in
+        one of them only), less what the background's misregistration can explain (the image
+        gradient times ``slow_registration_px``). Full resolution, or None without history or
+        when it is the background that moved (more than ``max_mask_frac`` of the frame)."""
+        c = self.cfg
+        cur, t_cur = self._small_cur, self._t_slow_cur
+        if c.slow_baseline_s <= 0 or cur is None or t_cur is None or len(self._slow) < 2:
+            return None
+        if t_cur - self._slow[0][0] < 2 * c.slow_baseline_s - 0.02:
+            return None  # not enough history yet
+
+        def nearest(t: float) -> tuple[float, np.ndarray, np.ndarray]:
+            return min(self._slow, key=lambda e: abs(e[0] - t))
+
+        diffs = []
+        for back in (c.slow_baseline_s, 2 * c.slow_baseline_s):
+            _, small, h = nearest(t_cur - back)
+            diffs.append(_compensated_diff(small, cur, _HALF @ h @ _DOUBLE))
+        diff = cv2.min(diffs[0], diffs[1])
+        if c.slow_registration_px > 0:
+            # 3x3 max - min spans two pixels; at half resolution a pixel is two
+            grad = cv2.morphologyEx(cur, cv2.MORPH_GRADIENT, _KERNEL3)
+            diff = cv2.subtract(diff, cv2.convertScaleAbs(grad, alpha=c.slow_registration_px / 4.0))
+        moving = cv2.threshold(diff, c.threshold, 255, cv2.THRESH_BINARY)[1]
+        if cv2.countNonZero(moving) > c.max_mask_frac * diff.size:
+            return None  # the background moved (parallax, a failed chain): not objects
+        assert self._shape is not None
+        return cv2.pyrUp(diff, dstsize=(self._shape[1], self._shape[0]))  # 0.1 ms; resize: 0.23
+
+    def _set_slow_cur(self, gray: np.ndarray, t_s: float | None) -> None:
+        if self.cfg.slow_baseline_s > 0:
+            self._small_cur = cv2.pyrDown(gray)
+            # without capture times, frames are taken as 30 fps
+            self._t_slow_cur = t_s if t_s is not None else self._frames / 30.0
+
     def _start(self, gray: np.ndarray, hist: np.ndarray, t_s: float | None = None) -> None:
+        self._set_slow_cur(gray, t_s)
         self._cur, self._hist_cur, self._mosaic_cur = gray, hist, self._mosaic(gray)
         self._t_prev, self._t_cur = None, t_s
         self._reseed(gray)
@@ -476,6 +539,9 @@ class MotionDetector:
             merged, status = cv2.min(prev_diff, next_diff), "ok"
         else:
             merged, status = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0), "ok"
+        slow = self._slow_difference()
+        if slow is not None:
+            merged = cv2.max(merged, slow)
         b = self.cfg.border_px
         if b:
             merged[:b, :] = 0
@@ -493,6 +559,11 @@ class MotionDetector:
                         100 * self.cfg.max_mask_frac)
             return None, "bad_warp"
         return mask, status
+
+
+_HALF = np.diag([0.5, 0.5, 1.0])  # full-resolution px -> pyrDown's px (pixel centres 2i -> i)
+_DOUBLE = np.diag([2.0, 2.0, 1.0])
+_KERNEL3 = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
 
 
 def _compensated_diff(src: np.ndarray, dst: np.ndarray, h: np.ndarray) -> np.ndarray:
