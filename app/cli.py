@@ -120,6 +120,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="also fly MIN simulated minutes with no object (false evasions per hour)")
     m.add_argument("--wide-passes", type=int, default=0, metavar="N",
                    help="also fly N encounters whose object misses by 2-4 m (unnecessary evasions)")
+    m.add_argument("--crossing", type=int, default=0, metavar="N",
+                   help="also fly N encounters crossing the view (approach 20-50 deg) that would "
+                        "pass 0.15-0.55 m off: is the first evasion ever towards their passage?")
     m.add_argument("--workers", type=int, help="processes for a campaign (default: half the cores; "
                    "encounters run in real time)")
     m.add_argument("--trigger", choices=("distance", "ttc", "response"), help="override decision.trigger")
@@ -422,6 +425,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
     try:
         from app.sim.campaign import (
+            crossing_set,
             default_workers,
             object_free,
             run_campaign,
@@ -442,7 +446,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
         world_for(cfg, Encounter(seed=args.seed, world=args.world))  # fails here, not in every worker
     t0 = time.monotonic()
-    if args.campaign is None and not args.object_free and not args.wide_passes and not args.resume:
+    if (args.campaign is None and not args.object_free and not args.wide_passes and not args.crossing
+            and not args.resume):
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
                         world=args.world)
@@ -452,8 +457,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         return _single_encounter(cfg, enc, args.out, args.connection)
     if args.campaign is not None and args.campaign < 1:
         raise UsageError(f"--campaign {args.campaign}: must be at least 1")
-    if args.wide_passes < 0 or args.object_free < 0:
-        raise UsageError("--wide-passes and --object-free must not be negative")
+    if args.wide_passes < 0 or args.object_free < 0 or args.crossing < 0:
+        raise UsageError("--wide-passes, --crossing and --object-free must not be negative")
     if args.fps not in (30.0, 60.0):
         raise UsageError(f"--fps {args.fps:g}: the D435i's colour stream runs at 30 or 60")
     from app.sim.results import ResultLog, config_digest
@@ -463,14 +468,16 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     encounters = [replace(e, fps=args.fps, world=args.world)
                   for e in sample_encounters(args.campaign or 0, args.seed)]
     wide = [replace(e, fps=args.fps, world=args.world) for e in wide_passes(args.wide_passes, args.seed)]
+    cross = [replace(e, fps=args.fps, world=args.world) for e in crossing_set(args.crossing, args.seed)]
     free = ([replace(e, fps=args.fps, world=args.world) for e in object_free(args.object_free, args.seed)]
             if args.object_free else [])
     fast = not args.realtime_object_free
     plan = {"seed": args.seed, "campaign": args.campaign or 0, "wide_passes": args.wide_passes,
+            "crossing": args.crossing,
             "object_free_min": args.object_free, "fps": args.fps, "world": args.world,
             "fast_object_free": fast, "trigger": cfg.decision.trigger, "config": config_digest(cfg)}
     log = ResultLog(out, plan, resume=args.resume is not None)
-    everything = [*encounters, *wide, *free]
+    everything = [*encounters, *wide, *cross, *free]
     bar = _CampaignBar(len(everything), len(log.done),
                        sum(r.success for r in log.done.values() if r.threat),
                        sum(r.threat for r in log.done.values()))
@@ -485,9 +492,10 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         bar.close()
         log.close()
     wall = time.monotonic() - t0
-    n, k = len(encounters), len(wide)
-    report = write_report(out, results[:n], results[n + k:], cfg, wall,
-                          title=f"Campaign of {n} encounters, seed {args.seed}", wide=results[n:n + k])
+    n, k, c = len(encounters), len(wide), len(cross)
+    report = write_report(out, results[:n], results[n + k + c:], cfg, wall,
+                          title=f"Campaign of {n} encounters, seed {args.seed}", wide=results[n:n + k],
+                          crossing=results[n + k:n + k + c])
     print(report.read_text())
     print(f"wrote {report}, {out / 'encounters.csv'} and the plots in {out}")
     return 0

@@ -279,3 +279,37 @@ def test_the_shaped_world_draws_flapping_birds_and_quadrotors_inside_their_circl
     a, _, _ = world.render((0.0, 0.0, -6.0), 0.0, [])
     b, _, _ = world.render((0.0, 0.0, -6.0), 0.0, [])
     assert np.abs(a[:100].astype(int) - b[:100].astype(int)).mean() > 0.3
+
+
+def test_the_crossing_set_crosses_the_view_with_a_side_to_pass_on() -> None:
+    from app.sim.campaign import crossing_set, sample_encounters
+
+    encs = crossing_set(40, 5)
+    assert encs == crossing_set(40, 5)  # reproducible from the seed
+    assert all(20.0 <= abs(e.approach_deg) <= 50.0 for e in encs)
+    assert {math.copysign(1, e.approach_deg) for e in encs} == {-1.0, 1.0}
+    assert all(0.15 <= e.miss_m <= 0.55 and e.threat for e in encs)
+    assert not {e.seed for e in encs} & {e.seed for e in sample_encounters(40, 5)}
+
+
+def test_the_true_passage_is_judged_on_the_course_not_on_one_frame_of_cruise_jitter() -> None:
+    """The vehicle cruises north at 4 m/s with +-1 m/s of controller jitter from frame to
+    frame; the object crosses from ahead-right, flying south-west, and passes 0.3 m from where
+    the vehicle will be, on its right (east, 0.21 m of it sideways). Leaving to the left is
+    away from the passage, to the right towards it, whatever the jitter did in the last frame
+    (from the last two frames' relative velocity, the passage changes side)."""
+    from types import SimpleNamespace
+
+    from app.sim.simulate import Truth, _direction_vs_truth
+
+    rows, n_v = [], 0.0
+    for k in range(1, 31):
+        t = k / 30.0
+        n_v += (4.0 + (1.0 if k % 2 else -1.0)) / 30.0
+        # relative to the vehicle's nominal path (4t north): crossing at t = 2 s, 0.3 m east
+        obj = (4.0 * t + 8.0 * (2.0 - t), 0.3 / (8.0 / math.hypot(8.0, 8.0)) + 8.0 * (2.0 - t), -6.0)
+        rows.append(Truth(k, t, (n_v, 0.0, -6.0), obj, None))
+    cam = SimpleNamespace(truth=rows)
+    away, _ = _direction_vs_truth(cam, 30, [0.0, -3.0, 0.0])  # type: ignore[arg-type]
+    towards, _ = _direction_vs_truth(cam, 30, [0.0, 3.0, 0.0])  # type: ignore[arg-type]
+    assert away is False and towards is True

@@ -179,3 +179,47 @@ def test_end_to_end_a_crossing_ball_seen_in_the_image_only_is_passed_behind(seed
     assert cmd.action == EVADE and cmd.right_mps < 0  # away from its passage on the right
     need = dm.response.time_to_move_s(CFG.vehicle_radius_m + 0.15 + CFG.clearance_margin_m)
     assert t_pass - t_first >= need  # in time for the vehicle to clear it
+
+
+def course_obj(p: tuple[float, float, float], v: tuple[float, float, float], d: float = 0.3,
+               tid: int = 1, t: float = 0.0) -> ObjectState:
+    """An image-only object from exact geometry (camera XYZ m, m/s), with its course in
+    object sizes as the looming estimator gives it."""
+    tau = p[2] / -v[2]
+    miss = ((p[0] + v[0] * tau) / d, (p[1] + v[1] * tau) / d)
+    z = CFG.object_diameter_min_m / (d / p[2])
+    return ObjectState(tid, (p[0] / p[2] * z, p[1] / p[2] * z, z), -math.inf, False, z / tau, None,
+                       source="image", tau_s=tau, tau_std_s=0.03, miss_sizes=miss, miss_sizes_std=0.3,
+                       seen_s=t, course_sizes=(tuple(c / d for c in p), tuple(c / d for c in v)))  # type: ignore[arg-type]
+
+
+def test_the_passage_is_the_closest_approach_in_3d_not_the_camera_plane_crossing() -> None:
+    """Crossing at 45 degrees, it crosses the camera plane 1 m to the right, but comes
+    within 0.71 m (1 m x cos 45) of the camera before that: the closest approach is the
+    passage the need and the escape are judged on."""
+    o = course_obj((5.0, 0.0, 4.0), (-4.0, 0.0, -4.0))
+    assert o.miss_sizes is not None and o.miss_sizes[0] * 0.3 == pytest.approx(1.0)
+    _d, miss, _std = o.passages(0.3, 0.3)[0]  # the range's two ends, both 0.3 m here
+    assert math.hypot(*miss) == pytest.approx(1.0 / math.sqrt(2), abs=1e-6)
+    assert miss[0] > 0 and miss[2] < 0  # to the right and, then, just behind the camera plane
+
+
+def test_a_collision_course_crossing_at_45_degrees_is_not_escaped_into_its_path() -> None:
+    """From the right, flying left, aimed at the vehicle: sideways the escape buys only
+    cos 45 of its motion in miss, and going left runs ahead of the object into its path.
+    The escape goes up or down (all of it buys miss), or behind it (to the right), never
+    left."""
+    def make(dt: float, t: float) -> list[ObjectState]:
+        return [course_obj((5.0 - 5.0 * dt, 0.0, 5.0 - 5.0 * dt), (-5.0, 0.0, -5.0), t=t)]
+
+    dm = DecisionMaker(CFG, CAM)
+    cmd = None
+    for k in range(12):  # 1.0 s to the passage, 0.33 s of frames
+        t = k / 30.0
+        cmd = dm.decide_response(make(t, t), t, ALT)
+        if cmd.action != NONE:
+            break
+    assert cmd is not None and cmd.action == EVADE
+    assert cmd.right_mps >= 0.0  # never ahead of it, into its path
+    # the vertical buys all of its speed in miss, the sideways part only cos 45: mostly vertical
+    assert abs(cmd.down_mps) > abs(cmd.right_mps)

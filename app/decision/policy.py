@@ -51,6 +51,12 @@ MAX_TAU_REL_STD = 0.3
 # ... and an object seen in the image only, to within this, whatever its urgency (clutter's
 # looming in object-free flight: 0.08-0.11 s +- 0.09-0.12 s, a real ball's 0.6 +- 0.19 s)
 MAX_TAU_REL_STD_IMAGE = 0.5
+# a fused track's looming must be urgent this many frames in a row, each consistent with the last
+FUSED_CONFIRM_FRAMES = 2
+COURSE_STEPS = 24  # an escape is judged at this many instants along each threat's course
+# Escapes whose worst-case misses differ by less than this are equal: then the one that
+# passes behind a crossing object (against its lateral motion) is taken, m
+EQUAL_MISS_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -91,18 +97,31 @@ class ObjectState:
     seen_s: float = -math.inf  # newest frame the object was matched in (image or depth), s
     reported: bool = True  # perception's confidence reports it as an object (not clutter)
     crossing_std_m: float = 0.5  # standard error of crossing_m (the depth track's), m
+    # the image's course in object diameters: position P/D now, relative velocity (dP/dt)/D
+    course_sizes: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
-    def passages(self, d_min: float, d_max: float) -> list[tuple[float, tuple[float, float], float]]:
-        """The passage for each plausible size: (diameter m, miss vector m, its std m). With
-        depth the size is known; else the configured range's two ends (the miss and the
-        clearance are both linear in the size, so the worst case lies at one of them)."""
-        if self.miss_sizes is None:
+    def passages(self, d_min: float, d_max: float
+                 ) -> list[tuple[float, tuple[float, float, float], float]]:
+        """The passage for each plausible size: (diameter m, where it passes relative to the
+        camera at the closest approach in 3-D, m, that point's std m). With depth the size is
+        known; else the configured range's two ends (the miss and the clearance are both
+        linear in the size, so the worst case lies at one of them). Without the image's course,
+        the depth track's crossing of the camera plane."""
+        if self.course_sizes is None and self.miss_sizes is None:
             if self.crossing_m is None:
                 return []
-            return [(self.diameter_m or d_min, self.crossing_m, self.crossing_std_m)]
+            return [(self.diameter_m or d_min, (*self.crossing_m, 0.0), self.crossing_std_m)]
         sizes = [self.diameter_m] if self.diameter_m is not None else [d_min, d_max]
         ms = self.miss_sizes_std or 0.0
-        return [(d, (self.miss_sizes[0] * d, self.miss_sizes[1] * d), ms * d) for d in sizes]
+        if self.course_sizes is None:
+            assert self.miss_sizes is not None  # where it crosses the camera plane
+            mx, my = self.miss_sizes
+            return [(d, (mx * d, my * d, 0.0), ms * d) for d in sizes]
+        q, w = self.course_sizes
+        ww = w[0] ** 2 + w[1] ** 2 + w[2] ** 2
+        t = max(0.0, -(q[0] * w[0] + q[1] * w[1] + q[2] * w[2]) / ww) if ww > 0 else 0.0
+        cpa = (q[0] + w[0] * t, q[1] + w[1] * t, q[2] + w[2] * t)
+        return [(d, (cpa[0] * d, cpa[1] * d, cpa[2] * d), ms * d) for d in sizes]
 
     @property
     def z_m(self) -> float:
@@ -258,7 +277,8 @@ class DecisionMaker:
             if est is None:
                 est = self._looming[t.track_id] = LoomingEstimator(
                     self.camera.color, c.looming_window_s, c.looming_min_samples,
-                    size_bias_px=self.mask_growth_px)
+                    size_bias_px=self.mask_growth_px, max_chi2=c.looming_max_chi2,
+                    min_size_px=c.looming_min_size_px)
             else:
                 est.carry(derotation)
             if t.matched and t.cluster is not None:
@@ -302,7 +322,8 @@ class DecisionMaker:
         closing = z / e.tau_s if e.tau_s is not None and e.tau_s > 0 else 0.0
         return ObjectState(tid, xyz, -math.inf, False, closing, None, None, source="image",
                            tau_s=e.tau_s, tau_std_s=e.tau_std_s, miss_sizes=e.miss_sizes,
-                           miss_sizes_std=e.miss_sizes_std, seen_s=self._seen.get(tid, -math.inf))
+                           miss_sizes_std=e.miss_sizes_std, seen_s=self._seen.get(tid, -math.inf),
+                           course_sizes=_course(e))
 
     def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
         """The depth track's state with the image's looming: time to the passage by inverse
@@ -326,7 +347,7 @@ class DecisionMaker:
                                   math.hypot(*miss) * tau_std / tau)
         return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
                                    miss_sizes=miss, miss_sizes_std=miss_std,
-                                   diameter_m=diameter,
+                                   diameter_m=diameter, course_sizes=_course(e),
                                    seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
 
     # ------------------------------------------------------------------ policy
@@ -458,20 +479,22 @@ class DecisionMaker:
         for o in objects:
             a = self.assess(o)
             urgent = a is not None and a[0] <= a[1] + c.trigger_margin_s
-            if urgent and o.source == "image":
-                # Without a range nothing else vouches for it: the image alone must say so
-                # for image_confirm_frames frames in a row, each time consistent with the
-                # last (the time left shrinking with the clock). Clutter's looming flickers:
-                # object-free flights at 2-3 m/s over ground evaded 12 times in 10 minutes
-                # on single-frame image estimates.
+            if urgent and o.source in ("image", "fused"):
+                # The image's time left must say so for several frames in a row, each time
+                # consistent with the last (shrinking with the clock): image_confirm_frames
+                # without a range, where nothing else vouches for it (clutter's looming
+                # flickers: object-free flights at 2-3 m/s over ground evaded 12 times in 10
+                # minutes on single-frame image estimates), two with one (a fused track's
+                # looming collapsed 1.5 -> 0.01 s for one frame and turned an escape to the
+                # wrong side: docs/measurements.md).
                 assert o.tau_s is not None and o.tau_std_s is not None
                 n, tau0, t0 = self._image_votes.get(o.track_id, (0, math.nan, -math.inf))
                 expect = tau0 - (t_s - t0)
                 consistent = abs(o.tau_s - expect) <= 0.3 * max(expect, 0.0) + 0.05
-                sure = o.tau_std_s <= MAX_TAU_REL_STD_IMAGE * o.tau_s
+                sure = o.source == "fused" or o.tau_std_s <= MAX_TAU_REL_STD_IMAGE * o.tau_s
                 n = (n + 1 if n and consistent and t_s - t0 < 0.2 else 1) if sure else 0
                 votes[o.track_id] = (n, o.tau_s, t_s)
-                urgent = n >= c.image_confirm_frames
+                urgent = n >= (c.image_confirm_frames if o.source == "image" else FUSED_CONFIRM_FRAMES)
             if urgent:
                 assert a is not None
                 threats.append((o, f"tau {a[0]:.2f} s <= need {a[1]:.2f} + {c.trigger_margin_s:g} s "
@@ -542,19 +565,35 @@ class DecisionMaker:
             speed = max(1e-9, math.hypot(*vel))
             scale = speed / max(1e-9, self.response.speed_mps)  # a capped descent is slower
             u = (vel[0] / speed, vel[1] / speed)
+
+            def moved(t: float) -> float:
+                return self.response.displacement_m(t) * scale
+
             for o in threats:
-                s = self.response.displacement_m(max(0.0, o.tau_s or 0.0)) * scale
                 for size, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
                     clearance = c.vehicle_radius_m + size / 2 + c.clearance_margin_m
-                    miss = math.hypot(m[0] - s * u[0], m[1] - s * u[1]) - k * std
+                    miss = _closest_m(o, size, moved, u, m) - k * std
                     worst = min(worst, miss - clearance)
             return worst
+
+        def behind(d: tuple[float, float]) -> float:
+            """How much ``d`` runs against the threats' lateral motion (passing behind them)."""
+            total = 0.0
+            for o in threats:
+                if o.course_sizes is not None:
+                    w = o.course_sizes[1]
+                    total -= (d[0] * w[0] + d[1] * w[1]) / max(1e-9, math.hypot(w[0], w[1], w[2]))
+            return total
 
         options = [d for d in _DIRECTIONS if allowed(d)]
         if not options:
             return None
-        # ties (a head-on course: every direction buys the same) go to the paper's order
-        return max(options, key=lambda d: (round(score(d), 3), -_DIRECTIONS.index(d)))
+        # Misses equal to within EQUAL_MISS_M are equal; then behind a crossing object, then
+        # (a head-on course: every direction buys the same) the paper's order
+        scores = {d: score(d) for d in options}
+        best = max(scores.values())
+        near = [d for d in options if scores[d] >= best - EQUAL_MISS_M]
+        return max(near, key=lambda d: (round(behind(d), 2), -_DIRECTIONS.index(d)))
 
     def step(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
              altitude_m: float | None, derotation: np.ndarray | None = None
@@ -617,6 +656,35 @@ class DecisionMaker:
             if not any(closes_on(d, *self._aim(t)) for t in vetoes):
                 return d
         return None
+
+
+def _course(e: ImageEstimate) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+    """The image's course in object sizes, when it gives a time to contact (its sizes keep
+    to a constant-velocity approach: :class:`LoomingEstimator`)."""
+    if e.tau_s is None or e.position_sizes is None or e.velocity_sizes is None:
+        return None
+    return e.position_sizes, e.velocity_sizes
+
+
+def _closest_m(o: ObjectState, d: float, s_of_t: Callable[[float], float], u: tuple[float, float],
+               fallback: tuple[float, float, float]) -> float:
+    """How near ``o`` (of diameter ``d``) comes to the vehicle moving ``s_of_t(t)`` m along
+    ``u`` (right, down) from now: along the image's course when there is one (its closest
+    approach in 3-D, which for an object crossing at an angle is not where it crosses the
+    camera plane), else at the passage ``fallback`` when it is due."""
+    if o.course_sizes is None:
+        s = s_of_t(max(0.0, o.tau_s or 0.0))
+        return math.hypot(fallback[0] - s * u[0], fallback[1] - s * u[1], fallback[2])
+    q, w = o.course_sizes
+    ww = w[0] ** 2 + w[1] ** 2 + w[2] ** 2
+    t_cpa = max(0.0, -(q[0] * w[0] + q[1] * w[1] + q[2] * w[2]) / ww) if ww > 0 else 0.0
+    best = math.inf
+    for i in range(COURSE_STEPS + 1):
+        t = (t_cpa + 0.5) * i / COURSE_STEPS
+        s = s_of_t(t)
+        best = min(best, math.hypot(d * (q[0] + w[0] * t) - s * u[0], d * (q[1] + w[1] * t) - s * u[1],
+                                    d * (q[2] + w[2] * t)))
+    return best
 
 
 def passage_fields(o: ObjectState) -> dict[str, object]:

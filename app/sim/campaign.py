@@ -73,6 +73,23 @@ def wide_passes(n: int, seed: int) -> list[Encounter]:
             for e in sample_encounters(n, seed + 1)]
 
 
+CROSSING_DEG = (20.0, 50.0)  # |approach| of the crossing set, deg
+CROSSING_MISS_M = (0.15, 0.55)  # its misses: inside the clearance, but with a side to pass on
+
+
+def crossing_set(n: int, seed: int) -> list[Encounter]:
+    """``n`` encounters like :func:`sample_encounters` that cross the view (approach 20-50°
+    either side) and would pass 0.15-0.55 m off: threats with a side to their passage, so the
+    first evasion's direction can be judged against it (a collision course has none)."""
+    rng = np.random.default_rng(seed + 2)
+    out = []
+    for e in sample_encounters(n, seed + 2):
+        angle = float(rng.uniform(*CROSSING_DEG)) * float(rng.choice([-1.0, 1.0]))
+        out.append(replace(e, seed=e.seed + 80_000, approach_deg=round(angle, 1),
+                           miss_m=round(float(rng.uniform(*CROSSING_MISS_M)), 2)))
+    return out
+
+
 def object_free(minutes: float, seed: int, run_s: float = 30.0) -> list[Encounter]:
     """Flights with no object at all over varied worlds and speeds (false evasions)."""
     rng = np.random.default_rng(seed)
@@ -158,12 +175,15 @@ def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | Non
 
 def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterResult],
                  cfg: Config, wall_s: float, title: str = "Campaign",
-                 wide: Sequence[EncounterResult] = ()) -> Path:
-    """``report.md``, ``encounters.csv`` and PNG plots in ``out``; returns the report's path."""
+                 wide: Sequence[EncounterResult] = (), crossing: Sequence[EncounterResult] = ()) -> Path:
+    """``report.md``, ``encounters.csv`` and PNG plots in ``out``; returns the report's path.
+    ``rows``: the campaign's encounters (every rate of the table); ``wide``, ``crossing`` and
+    ``free``: the wide passes, the crossing set and the object-free flights, reported apart."""
+    crossing_set_rows = list(crossing)
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "encounters.csv.tmp"  # in campaign order; replaces the log streamed as they ran
     with tmp.open("w", newline="") as fh:
-        all_rows = [r.row() for r in [*rows, *wide, *free]]
+        all_rows = [r.row() for r in [*rows, *wide, *crossing, *free]]
         if all_rows:
             w = csv.DictWriter(fh, fieldnames=list(all_rows[0]))
             w.writeheader()
@@ -221,6 +241,14 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
         lines += [f"Direction (from the truth, first evasion of encounters approaching at 20–50°): "
                   f"{towards} of {len(crossing)} moved towards the object's true passage; {into} of "
                   f"{len(crossing)} moved along its lateral motion (into its path, not behind it).", ""]
+    if crossing_set_rows:
+        judged = [r for r in crossing_set_rows if r.towards_passage is not None]
+        lo, hi = CROSSING_MISS_M
+        lines += [f"Crossing set ({len(crossing_set_rows)} encounters at 20–50°, each passing "
+                  f"{lo:g}–{hi:g} m off if nobody moved): {sum(bool(r.towards_passage) for r in judged)} of "
+                  f"{len(judged)} first evasions moved towards the object's true passage; "
+                  f"{sum(bool(r.into_path) for r in judged)} along its lateral motion; avoided "
+                  f"{_rate(crossing_set_rows)}.", ""]
     if wide:
         lo, hi = WIDE_MISS_M
         lines += [f"Wide passes (would miss by {lo:g}–{hi:g} m, outside the window: nothing to do): "
