@@ -223,3 +223,20 @@ def test_a_collision_course_crossing_at_45_degrees_is_not_escaped_into_its_path(
     assert cmd.right_mps >= 0.0  # never ahead of it, into its path
     # the vertical buys all of its speed in miss, the sideways part only cos 45: mostly vertical
     assert abs(cmd.down_mps) > abs(cmd.right_mps)
+
+
+def test_looming_that_no_object_could_have_is_not_fused_with_the_range() -> None:
+    """Depth puts it 11 m off; the blob's looming says τ 0.24 s, i.e. 46 m/s: a blob that
+    changed size. The fused object keeps the depth track's time and passage, not that."""
+    from app.decision.looming import ImageEstimate
+
+    dm = DecisionMaker(CFG, CAM)
+    depth = ObjectState(1, (0.5, 0.0, 11.0), 0.0, True, 6.0, 11.0 / 6.0, (0.1, 0.0), tau_s=11.0 / 6.0,
+                        tau_std_s=0.2)
+    def image(tau: float) -> ImageEstimate:
+        return ImageEstimate(0.0, 20, (0.045, 0.0), (0.0, 0.0), 0.02, 1 / tau, 0.05, tau, 0.02, (0.1, 0.0),
+                             0.3, 0.0, (2.3, 0.0, 50.0), (0.0, 0.0, -50.0 / tau))
+    wild = dm._fuse(depth, image(0.24), 1)
+    assert wild.tau_s == pytest.approx(11.0 / 6.0) and wild.course_sizes is None
+    sane = dm._fuse(depth, image(1.5), 1)  # 7.3 m/s: the image's looming is the one taken
+    assert sane.source == "fused" and sane.tau_s == pytest.approx(1.5) and sane.course_sizes is not None
