@@ -78,25 +78,6 @@ class _Sample:
     h_ok: bool
 
 
-def _fit(t: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
-    """Least-squares line y = a + b (t - t[-1]): value now, slope, slope's standard error."""
-    tc = t - t[-1]
-    n = len(t)
-    tm = tc.mean()
-    stt = float(((tc - tm) ** 2).sum())
-    if n < 2 or stt <= 0:
-        return float(y[-1]), 0.0, math.inf
-    b = float(((tc - tm) * (y - y.mean())).sum() / stt)
-    a = float(y.mean() - b * tm)
-    if n > 2:
-        resid = y - (a + b * tc)
-        s2 = float((resid**2).sum()) / (n - 2)
-        se = math.sqrt(s2 / stt)
-    else:
-        se = math.inf
-    return a, b, se
-
-
 @dataclass(frozen=True)
 class _Line:
     """A weighted least-squares line y = mean + slope (t - t_mean)."""

@@ -123,8 +123,7 @@ class ObjectState:
             mx, my = self.miss_sizes
             return [(d, (mx * d, my * d, 0.0), ms * d) for d in sizes]
         q, w = self.course_sizes
-        ww = w[0] ** 2 + w[1] ** 2 + w[2] ** 2
-        t = max(0.0, -(q[0] * w[0] + q[1] * w[1] + q[2] * w[2]) / ww) if ww > 0 else 0.0
+        t = _cpa_time(q, w)
         cpa = (q[0] + w[0] * t, q[1] + w[1] * t, q[2] + w[2] * t)
         return [(d, (cpa[0] * d, cpa[1] * d, cpa[2] * d), ms * d) for d in sizes]
 
@@ -665,6 +664,12 @@ class DecisionMaker:
         return None
 
 
+def _cpa_time(q: tuple[float, float, float], w: tuple[float, float, float]) -> float:
+    """When a course from ``q`` at velocity ``w`` comes closest to the camera, from now (s, >= 0)."""
+    ww = w[0] ** 2 + w[1] ** 2 + w[2] ** 2
+    return max(0.0, -(q[0] * w[0] + q[1] * w[1] + q[2] * w[2]) / ww) if ww > 0 else 0.0
+
+
 def _course(e: ImageEstimate) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
     """The image's course in object sizes, when it gives a time to contact (its sizes keep
     to a constant-velocity approach: :class:`LoomingEstimator`)."""
@@ -683,8 +688,7 @@ def _closest_m(o: ObjectState, d: float, s_of_t: Callable[[float], float], u: tu
         s = s_of_t(max(0.0, o.tau_s or 0.0))
         return math.hypot(fallback[0] - s * u[0], fallback[1] - s * u[1], fallback[2])
     q, w = o.course_sizes
-    ww = w[0] ** 2 + w[1] ** 2 + w[2] ** 2
-    t_cpa = max(0.0, -(q[0] * w[0] + q[1] * w[1] + q[2] * w[2]) / ww) if ww > 0 else 0.0
+    t_cpa = _cpa_time(q, w)
     best = math.inf
     for i in range(COURSE_STEPS + 1):
         t = (t_cpa + 0.5) * i / COURSE_STEPS
