@@ -36,6 +36,26 @@ def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -
     assert (depth[: int(intr.ppy)] == 0).all()  # sky: no depth data
 
 
+def test_a_far_object_darkens_the_sky_in_proportion_to_its_area_as_it_nears() -> None:
+    """A 0.3 m ball from 60 m to 40 m in 1 m steps (radius 1.5-2.3 px): the light it takes
+    from the sky grows as its area, each step within 8 % of (f D / 2 z)^2 pi x contrast and
+    never by a whole-pixel jump (drawn to whole pixels, 2.4 -> 2.5 px covered 40 % more)."""
+    world = World(WorldStyle(seed=3, noise_std=0.0, depth_subpixel=0.0))
+    sky, _d, _s = world.render((0.0, 0.0, -30.0), 0.0, [])
+    ratios = []
+    for x in range(60, 39, -1):
+        ball = Sphere(1, (float(x), 0.3, -30.1), 0.3, 40)
+        colour, _depth, seen = world.render((0.0, 0.0, -30.0), 0.0, [ball])
+        u, v, r, _z = seen[1]
+        a = sky[..., 0].astype(float) - colour[..., 0].astype(float)
+        y0, x0 = int(v) - 8, int(u) - 8
+        taken = float(a[y0:y0 + 17, x0:x0 + 17].sum())
+        contrast = float(sky[int(v), int(u), 0]) - 40.0
+        ratios.append(taken / (contrast * math.pi * r * r))
+    assert max(ratios) / min(ratios) < 1.25
+    assert all(abs(b / a - 1) < 0.08 for a, b in zip(ratios, ratios[1:], strict=False))
+
+
 def test_depth_noise_grows_with_the_square_of_the_distance_as_a_d435i() -> None:
     world = World(WorldStyle(seed=3))
     for z in (4.0, 8.0):
