@@ -12,8 +12,12 @@ the angular size θ = D/Z. Then, exactly:
   (db/dt = 0) is a collision course. The direction of the passage needs no size at all; its
   distance in metres needs D (a configured plausible range until stereo depth gives Z).
 
-The estimator fits ln(size) and the bearing over a sliding window (least squares, so a few
-pixels of blob noise average out; the residuals give the uncertainty). Samples whose box
+The estimator fits the course in object diameters, (b_x, b_y, 1) / θ, which is linear in
+time on any straight approach, over a sliding window (weighted least squares, so a few
+pixels of blob noise average out; the residuals give the uncertainty). The size is the
+object's contrast flux where perception measured one for every sample (its square root is
+proportional to θ to a fraction of a pixel: app.perception.photometry), else the box's
+larger side, which steps by whole pixels and carries the motion mask's smear. Samples whose box
 touches the frame edge are partially occluded: their cut dimension is not used for the size,
 nor the cut axis's centre for the bearing. Past samples are carried into the newest frame's
 pixels through the camera's rotation between frames (K·R·K⁻¹, from the attitude or a gyro),
@@ -31,6 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.camera import Intrinsics
+
+FLUX_MIN_SIGMAS = 5.0  # a flux this many of its std above zero measures a size
 
 
 @dataclass(frozen=True)
@@ -76,6 +82,7 @@ class _Sample:
     v_ok: bool
     w_ok: bool  # the width is not cut by the frame edge
     h_ok: bool
+    flux: tuple[float, float] | None = None  # contrast flux and its std (photometry), grey x px²
 
 
 @dataclass(frozen=True)
@@ -179,15 +186,17 @@ class LoomingEstimator:
         for s, (u, v) in zip(self._samples, q.T, strict=True):
             s.u, s.v = float(u), float(v)
 
-    def add(self, t_s: float, box: tuple[float, float, float, float]) -> None:
-        """A measured box (x, y, w, h, px) at ``t_s``."""
+    def add(self, t_s: float, box: tuple[float, float, float, float],
+            flux: tuple[float, float] | None = None) -> None:
+        """A measured box (x, y, w, h, px) at ``t_s``, with its contrast flux (flux, std)
+        when perception measured one (app.perception.photometry)."""
         x, y, w, h = box
         e, W, H = self.edge_px, self.k.width, self.k.height
         left, right = x <= e, x + w >= W - e
         top, bottom = y <= e, y + h >= H - e
         self._samples.append(_Sample(t_s, x + w / 2, y + h / 2, w, h,
                                      not (left or right), not (top or bottom),
-                                     not (left or right), not (top or bottom)))
+                                     not (left or right), not (top or bottom), flux))
         while self._samples and t_s - self._samples[0].t > self.window_s:
             self._samples.popleft()
 
@@ -206,17 +215,16 @@ class LoomingEstimator:
         sig = self.pixel_noise_px
         # The course in object diameters, q = P / D = (b_x, b_y, 1) / θ: linear in time for
         # any constant relative velocity (the pinhole's 1/Z cancels), so a straight line fits
-        # it exactly over any window, with no bias from the curvature of ln θ or of the bearing
-        qz = f / size
-        # a blob of a few pixels is mostly the motion mask's own margin: its size says little
-        # of its range, and one pixel more (a merged blob) reads as a collapse of τ (seen: a
-        # ball 45 m off, 3 px, evaded 3.5 s early on "τ 0.25 s"). Its bearing still counts.
-        big = size >= self.min_size_px
-        sized = int(big.sum()) >= self.min_samples
-        keep = big if sized else np.ones_like(big)
-        lz = _wfit(t[keep], qz[keep], f * sig / size[keep] ** 2)
-        if lz is None:
+        # it exactly over any window, with no bias from the curvature of ln θ or of the bearing.
+        # The size from the contrast flux where every sample of the window has one and it fits
+        # a course (sqrt(flux) is proportional to the angular size, to a fraction of a pixel),
+        # scaled to the boxes' sizes; else from the boxes.
+        fit = self._flux_fit(t, size, f, ss)
+        if fit is None:
+            fit = self._box_fit(t, size, f, sig)
+        if fit is None:
             return None
+        lz, qz, sizes_sig, sized = fit
         lines = []
         for axis in (0, 1):
             c, fl = (k.ppx, k.fx) if axis == 0 else (k.ppy, k.fy)
@@ -225,7 +233,7 @@ class LoomingEstimator:
                 ok[:] = True  # cut all along: better than nothing
             b = (np.array([s.u if axis == 0 else s.v for s in ss]) - c) / fl
             q = b * qz
-            sq = (f / size) * np.sqrt((sig / fl) ** 2 + (b * sig / size) ** 2)
+            sq = qz * np.sqrt((sig / fl) ** 2 + (b * qz * sizes_sig / f) ** 2)
             line = _wfit(t[ok], q[ok], sq[ok])
             if line is None:
                 return None
@@ -257,6 +265,40 @@ class LoomingEstimator:
             miss_se = max(math.sqrt(ln.var_at(t_c) + ln.slope**2 * var_tau) for ln in (lx, ly))
         return ImageEstimate(t_s, len(ss), bearing, rate, theta, expansion, exp_se, tau, tau_se,
                              miss, miss_se, rate_se, (x_now, y_now, z_now), (lx.slope, ly.slope, vz), lz.chi2)
+
+    def _box_fit(self, t: np.ndarray, size: np.ndarray, f: float, sig: float
+                 ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:
+        """The line of q_z = f / size through the boxes' sizes: (line, q_z, each size's
+        std px, whether enough samples were big enough for a time to contact)."""
+        qz = f / size
+        # a blob of a few pixels is mostly the motion mask's own margin: its size says little
+        # of its range, and one pixel more (a merged blob) reads as a collapse of τ (seen: a
+        # ball 45 m off, 3 px, evaded 3.5 s early on "τ 0.25 s"). Its bearing still counts.
+        big = size >= self.min_size_px
+        sized = int(big.sum()) >= self.min_samples
+        keep = big if sized else np.ones_like(big)
+        lz = _wfit(t[keep], qz[keep], f * sig / size[keep] ** 2)
+        if lz is None:
+            return None
+        return lz, qz, np.full_like(size, sig), sized
+
+    def _flux_fit(self, t: np.ndarray, size: np.ndarray, f: float, ss: list[_Sample]
+                  ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:
+        """As :meth:`_box_fit` from the contrast flux: None unless every sample has a flux
+        clearly above its noise and the sizes it gives keep to a course (``max_chi2``)."""
+        if any(s.flux is None or s.flux[0] <= FLUX_MIN_SIGMAS * s.flux[1] for s in ss):
+            return None
+        flux = np.array([s.flux[0] for s in ss])  # type: ignore[index]
+        std = np.array([s.flux[1] for s in ss])  # type: ignore[index]
+        root = np.sqrt(flux)
+        k = float(np.median(size / root))  # px per sqrt(flux): the boxes' scale, not their steps
+        sz = k * root
+        sz_sig = k * 0.5 * std / root
+        qz = f / sz
+        lz = _wfit(t, qz, f * sz_sig / sz**2)
+        if lz is None or lz.chi2 > self.max_chi2:
+            return None
+        return lz, qz, sz_sig, True
 
     def reset(self) -> None:
         self._samples.clear()

@@ -286,7 +286,7 @@ class DecisionMaker:
             else:
                 est.carry(derotation)
             if t.matched and t.cluster is not None:
-                est.add(t_s, tuple(float(v) for v in t.cluster.box))  # type: ignore[arg-type]
+                est.add(t_s, tuple(float(v) for v in t.cluster.box), t.flux)  # type: ignore[arg-type]
                 self._seen[t.track_id] = t_s
             image = est.estimate(t_s)
             if image is not None:

@@ -11,6 +11,7 @@ from app.config import PerceptionConfig
 from app.perception.confidence import TrackConfidence
 from app.perception.detection import MotionDetector
 from app.perception.frames import Frame, to_grey
+from app.perception.photometry import contrast_flux
 from app.perception.recognition import Blobs, Cluster, Recognizer
 from app.perception.tracking import Tracker, TrackReport
 
@@ -77,6 +78,9 @@ class Perception:
             )
             if current_grey is not None:
                 tracks = self.confidence(current_grey, tracks)
+                # each matched object's flux, for looming (a box's size steps by whole pixels)
+                tracks = [t.with_flux(contrast_flux(current_grey, t.cluster.box))
+                          if t.matched and t.cluster is not None else t for t in tracks]
         t3 = time.perf_counter()
         timings = {
             "detection_ms": (t1 - t0) * 1e3,

@@ -69,6 +69,8 @@ class TrackReport:
     confidence: float = 1.0  # 0-1, from app.perception.confidence (1 until scored)
     features: tuple[float, ...] = ()  # what the confidence was computed from (app.perception.confidence)
     reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
+    # the matched cluster's contrast flux and its std (app.perception.photometry), grey x px²
+    flux: tuple[float, float] | None = None
 
     def scored(self, confidence: float, features: tuple[float, ...], reported: bool) -> TrackReport:
         """This report with its confidence filled in (as ``dataclasses.replace``, which looks the
@@ -77,6 +79,16 @@ class TrackReport:
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
             matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
             trail=self.trail, confidence=confidence, features=features, reported=reported,
+            flux=self.flux,
+        )
+
+    def with_flux(self, flux: tuple[float, float] | None) -> TrackReport:
+        """This report with its contrast flux filled in."""
+        return TrackReport(
+            track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
+            matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
+            trail=self.trail, confidence=self.confidence, features=self.features,
+            reported=self.reported, flux=flux,
         )
 
 
