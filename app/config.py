@@ -128,6 +128,17 @@ class DetectionConfig:
         "baseline: a difference smaller than the image gradient times this is not motion, px",
         ge=0,
     )
+    # What the slow difference marks of an object is the rim it grew by: a disc of 60 px
+    # radius growing 0.5 px a frame (τ 2 s at 30 fps; faster, the fast difference sees it)
+    # leaves a ring of ~1 100 px² in 0.2 s, 0.3 % of an 848 x 480 frame.
+    slow_max_frac: float = param(
+        0.01,
+        "the slow difference is left out of a frame where it alone marks more than this "
+        "fraction of it: it marks the rims that growing objects add, a few tenths of a per "
+        "cent, so more is the long baseline's registration failing (parallax, a turn, a close "
+        "object the camera follows; Halmstad target group 0.794 / 0.781 with no limit)",
+        gt=0, le=1,
+    )
 
 
 @dataclass(frozen=True)

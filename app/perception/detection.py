@@ -127,6 +127,9 @@ class MotionDetector:
         self._slow: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
         self._small_cur: np.ndarray | None = None  # frame t at half resolution
         self._t_slow_cur: float | None = None
+        # the last frame's difference against twice the baseline back (half resolution, its
+        # pixels) when it was computed fresh: the next frame shifts it on instead (see below)
+        self._slow_far: tuple[float, np.ndarray] | None = None
         self._frames = 0  # frames pushed (the clock when no capture time is given)
         self._clear_points()
         self._clear_shifts()
@@ -264,6 +267,7 @@ class MotionDetector:
         self._frames += 1
         if h_cur_next is None or self._small_cur is None or self._t_slow_cur is None:
             self._slow.clear()
+            self._slow_far = None
         else:
             for i, (t, small, h) in enumerate(self._slow):
                 self._slow[i] = (t, small, h_cur_next @ h)
@@ -287,17 +291,28 @@ class MotionDetector:
         def nearest(t: float) -> tuple[float, np.ndarray, np.ndarray]:
             return min(self._slow, key=lambda e: abs(e[0] - t))
 
-        diffs = []
-        for back in (c.slow_baseline_s, 2 * c.slow_baseline_s):
-            _, small, h = nearest(t_cur - back)
-            diffs.append(_compensated_diff(small, cur, _HALF @ h @ _DOUBLE))
-        diff = cv2.min(diffs[0], diffs[1])
+        _, small, h = nearest(t_cur - c.slow_baseline_s)
+        near = _compensated_diff(small, cur, _HALF @ h @ _DOUBLE)
+        # Against twice the baseline, every other frame shifts the last frame's difference on
+        # by tiles instead of warping anew (a warp is a third of the slow difference's cost):
+        # its ghost, 0.4 s back, moves by a frame and stays apart from the 0.2 s one's.
+        far = None
+        t_last, _, h_last = self._slow[-1]
+        if self._slow_far is not None and self._slow_far[0] == t_last:
+            far = _shift_tiles(self._slow_far[1], np.linalg.inv(_HALF @ h_last @ _DOUBLE))
+        if far is None:
+            _, small, h = nearest(t_cur - 2 * c.slow_baseline_s)
+            far = _compensated_diff(small, cur, _HALF @ h @ _DOUBLE)
+            self._slow_far = (t_cur, far)
+        else:
+            self._slow_far = None  # shifted once: the next frame warps afresh
+        diff = cv2.min(near, far)
         if c.slow_registration_px > 0:
             # 3x3 max - min spans two pixels; at half resolution a pixel is two
             grad = cv2.morphologyEx(cur, cv2.MORPH_GRADIENT, _KERNEL3)
             diff = cv2.subtract(diff, cv2.convertScaleAbs(grad, alpha=c.slow_registration_px / 4.0))
         moving = cv2.threshold(diff, c.threshold, 255, cv2.THRESH_BINARY)[1]
-        if cv2.countNonZero(moving) > c.max_mask_frac * diff.size:
+        if cv2.countNonZero(moving) > c.slow_max_frac * diff.size:
             return None  # the background moved (parallax, a failed chain): not objects
         assert self._shape is not None
         return cv2.pyrUp(diff, dstsize=(self._shape[1], self._shape[0]))  # 0.1 ms; resize: 0.23
@@ -505,6 +520,24 @@ class MotionDetector:
 
     # ------------------------------------------------------------------ differencing
 
+    def _threshold(self, merged: np.ndarray) -> np.ndarray | None:
+        """The motion mask of a merged difference (border cleared, median, dilation,
+        threshold); None when it covers more than ``max_mask_frac`` of the frame."""
+        b = self.cfg.border_px
+        if b:
+            merged[:b, :] = 0
+            merged[-b:, :] = 0
+            merged[:, :b] = 0
+            merged[:, -b:] = 0
+        if self.cfg.median_ksize > 1:
+            merged = cv2.medianBlur(merged, self.cfg.median_ksize)
+        if self._dilate_kernel is not None:
+            merged = cv2.dilate(merged, self._dilate_kernel)
+        _, mask = cv2.threshold(merged, self.cfg.threshold, 255, cv2.THRESH_BINARY)
+        if cv2.countNonZero(mask) > self.cfg.max_mask_frac * mask.size:
+            return None
+        return mask
+
     def _difference(self, nxt: np.ndarray, h_cur_next: np.ndarray | None) -> tuple[np.ndarray | None, str]:
         """Motion mask of frame t from frames t-1, t, t+1 (Alg. 1 lines 11–12).
 
@@ -540,20 +573,10 @@ class MotionDetector:
         else:
             merged, status = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0), "ok"
         slow = self._slow_difference()
-        if slow is not None:
-            merged = cv2.max(merged, slow)
-        b = self.cfg.border_px
-        if b:
-            merged[:b, :] = 0
-            merged[-b:, :] = 0
-            merged[:, :b] = 0
-            merged[:, -b:] = 0
-        if self.cfg.median_ksize > 1:
-            merged = cv2.medianBlur(merged, self.cfg.median_ksize)
-        if self._dilate_kernel is not None:
-            merged = cv2.dilate(merged, self._dilate_kernel)
-        _, mask = cv2.threshold(merged, self.cfg.threshold, 255, cv2.THRESH_BINARY)
-        if cv2.countNonZero(mask) > self.cfg.max_mask_frac * mask.size:
+        mask = self._threshold(cv2.max(merged, slow) if slow is not None else merged)
+        if mask is None and slow is not None:
+            mask = self._threshold(merged)  # the slow difference never costs a frame
+        if mask is None:
             # Real objects are small; a mask this large is the background failing to register.
             log.warning("bad_warp", "motion mask covers over %.0f %% of the frame: frame skipped",
                         100 * self.cfg.max_mask_frac)
