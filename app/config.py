@@ -132,7 +132,7 @@ class DetectionConfig:
     # radius growing 0.5 px a frame (τ 2 s at 30 fps; faster, the fast difference sees it)
     # leaves a ring of ~1 100 px² in 0.2 s, 0.3 % of an 848 x 480 frame.
     slow_max_frac: float = param(
-        0.01,
+        0.005,
         "the slow difference is left out of a frame where it alone marks more than this "
         "fraction of it: it marks the rims that growing objects add, a few tenths of a per "
         "cent, so more is the long baseline's registration failing (parallax, a turn, a close "

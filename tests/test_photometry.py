@@ -11,7 +11,7 @@ import pytest
 from app.camera import Intrinsics
 from app.decision.looming import LoomingEstimator
 from app.perception.photometry import contrast_flux
-from app.sim.world import _draw_object
+from app.sim.world import draw_object
 
 SKY, OBJECT, NOISE = 180.0, 60.0, 1.5
 
@@ -19,7 +19,7 @@ SKY, OBJECT, NOISE = 180.0, 60.0, 1.5
 def frame(u: float, v: float, r: float, seed: int = 0, size: tuple[int, int] = (120, 160)) -> np.ndarray:
     """A grey sky with sensor noise and one dark disc of radius ``r`` px at (u, v)."""
     cover = np.zeros(size, np.uint8)
-    _draw_object(cover, "disc", u, v, r, 0.0)
+    draw_object(cover, "disc", u, v, r, 0.0)
     a = cover.astype(np.float32) / 255.0
     rng = np.random.default_rng(seed)
     g = SKY * (1 - a) + OBJECT * a + rng.normal(0, NOISE, size)
@@ -39,7 +39,7 @@ def test_the_flux_is_the_area_times_the_contrast(r: float) -> None:
     f = contrast_flux(frame(80.3, 60.6, r), box(80.3, 60.6, r))
     assert f is not None
     cover = np.zeros((120, 160), np.uint8)
-    _draw_object(cover, "disc", 80.3, 60.6, r, 0.0)
+    draw_object(cover, "disc", 80.3, 60.6, r, 0.0)
     drawn = float(cover.sum()) / 255.0
     assert f[0] / (SKY - OBJECT) == pytest.approx(drawn, rel=0.10)
     assert drawn == pytest.approx(math.pi * r * r, rel=0.15)

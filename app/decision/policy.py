@@ -262,7 +262,8 @@ class DecisionMaker:
     def observe(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
                 derotation: np.ndarray | None = None) -> list[ObjectState]:
         """Update the image estimates and the 3-D tracks from this frame; return every known
-        object: measured in depth, or seen in the image only.
+        object: measured in depth, or seen in the image only (reported by perception as an
+        object, or the one being evaded).
 
         ``derotation`` is K·R·K⁻¹ of the camera's *rotation* since the last frame (from the
         vehicle's attitude or the D435i's gyro), which carries the image history through
@@ -275,7 +276,13 @@ class DecisionMaker:
         for store in (self._tracks, self._looming, self._seen):
             for tid in [k for k in store if k not in alive]:
                 del store[tid]
-        images: dict[int, ImageEstimate] = {}
+        images: dict[int, ImageEstimate | None] = {}
+
+        def image_of(tid: int) -> ImageEstimate | None:  # the fit, once a frame, when used
+            if tid not in images:
+                images[tid] = self._looming[tid].estimate(t_s)
+            return images[tid]
+
         for t in tracks:
             est = self._looming.get(t.track_id)
             if est is None:
@@ -288,9 +295,6 @@ class DecisionMaker:
             if t.matched and t.cluster is not None:
                 est.add(t_s, tuple(float(v) for v in t.cluster.box), t.flux)  # type: ignore[arg-type]
                 self._seen[t.track_id] = t_s
-            image = est.estimate(t_s)
-            if image is not None:
-                images[t.track_id] = image
         for t in tracks:
             meas = None
             if (depth is not None and t.matched and t.cluster is not None
@@ -300,22 +304,27 @@ class DecisionMaker:
             tr = self._tracks.get(t.track_id)
             if meas is not None and all(math.isfinite(v) for v in meas.xyz_m):
                 if tr is None:
-                    self._tracks[t.track_id] = _Track3D(meas.xyz_m, t_s, c, images.get(t.track_id))
+                    self._tracks[t.track_id] = _Track3D(meas.xyz_m, t_s, c, image_of(t.track_id))
                 else:
                     tr.advance(t_s)
                     tr.update(meas.xyz_m, t_s)
             elif tr is not None:
                 tr.advance(t_s)
         out = []
+        engaged = self._engaged.object_id if self._engaged is not None else None
         for t in tracks:
             tid = t.track_id
             tr = self._tracks.get(tid)
-            image = images.get(tid)
             if tr is not None:
-                out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image, tid),
+                out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image_of(tid), tid),
                                                reported=t.reported))
-            elif image is not None:
-                out.append(dataclasses.replace(self._image_only(tid, image, t_s), reported=t.reported))
+            elif t.reported or tid == engaged:
+                # (an unreported track seen in the image only is clutter to perception, and the
+                # decision never acts on it: its fit is not made, a third of the decision's time
+                # in object-free flight)
+                image = image_of(tid)
+                if image is not None:
+                    out.append(dataclasses.replace(self._image_only(tid, image, t_s), reported=t.reported))
         return out
 
     def _image_only(self, tid: int, e: ImageEstimate, t_s: float) -> ObjectState:

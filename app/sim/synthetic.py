@@ -22,6 +22,7 @@ import numpy as np
 
 from app.camera import CameraModel, Intrinsics
 from app.perception.frames import Frame, FrameSource
+from app.sim.world import draw_object
 
 
 @dataclass(frozen=True)
@@ -239,8 +240,7 @@ def render(scene: SyntheticScene) -> Iterator[tuple[Frame, list[tuple[int, float
             if not (-d < u < scene.width + d and -d < v < scene.height + d):
                 continue
             mask = np.zeros_like(grey)
-            cv2.circle(mask, (int(round(u)), int(round(v))), max(1, int(round(d / 2))), 255, -1,
-                       cv2.LINE_AA)
+            draw_object(mask, "disc", float(u), float(v), d / 2, 0.0)  # supersampled: no whole-px steps
             alpha = mask.astype(np.float32) / 255.0
             grey = (grey * (1 - alpha) + ob3.brightness * alpha).astype(np.uint8)
             depth[mask > 127] = int(z3 * 1000)

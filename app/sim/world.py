@@ -117,11 +117,46 @@ class World:
         self.noise = [rng.normal(0, s.noise_std, (intr.height, intr.width)).astype(np.float32)
                       for _ in range(7)]
         self._k = 0
+        self._tiled: np.ndarray | None = None  # the ground texture 3 x 3, made on first use
         # Depth noise: one smooth unit field (stereo matching correlates neighbouring pixels),
         # a fresh random window of it each frame.
         field = cv2.GaussianBlur(rng.normal(0, 1, (intr.height + 64, intr.width + 64)), (0, 0), 2.0)
         self._depth_field = (field / field.std()).astype(np.float32)
         self._depth_rng = np.random.default_rng(self.style.seed + 1)
+
+    def _ground_rows(self, texel_to_px: np.ndarray, w: int, rows: int) -> np.ndarray:
+        """The tiled ground texture seen through ``texel_to_px`` (texel -> output px), ``rows``
+        x ``w``. OpenCV's wrapping border costs 14x its constant one (3.1 against 0.22 ms at
+        848 x 240), so the rows whose texels all lie in a 3 x 3 tiling of the texture around
+        the nearest ground are drawn from that tiling (the same pixels: the texture is
+        periodic), and only the far rows near the horizon wrap."""
+        n = self.ground.shape[0]
+        if self._tiled is None:
+            self._tiled = np.tile(self.ground, (3, 3))
+        inv = np.linalg.inv(texel_to_px)
+        ys = np.arange(rows, dtype=np.float64)
+        ends = []
+        for x in (0.0, w - 1.0):
+            q = inv @ np.vstack([np.full_like(ys, x), ys, np.ones_like(ys)])
+            ends.append(q[:2] / q[2])
+        cx, cy = (ends[0][0][-1] + ends[1][0][-1]) / 2, (ends[0][1][-1] + ends[1][1][-1]) / 2
+        ox, oy = (math.floor(cx / n) - 1) * n, (math.floor(cy / n) - 1) * n  # nearest in the middle tile
+        inside = np.ones(rows, bool)
+        for ex, ey in ends:
+            inside &= (ex - ox >= 1) & (ex - ox <= 3 * n - 2) & (ey - oy >= 1) & (ey - oy <= 3 * n - 2)
+        first = rows  # the first row from which every row below is inside
+        while first > 0 and inside[first - 1]:
+            first -= 1
+        out = np.empty((rows, w), np.uint8)
+        if first < rows:
+            shift = texel_to_px @ np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
+            shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -first], [0.0, 0.0, 1.0]]) @ shift
+            out[first:] = cv2.warpPerspective(self._tiled, shift, (w, rows - first), flags=cv2.INTER_LINEAR,
+                                              borderMode=cv2.BORDER_CONSTANT)
+        if first > 0:
+            out[:first] = cv2.warpPerspective(self.ground, texel_to_px, (w, first), flags=cv2.INTER_LINEAR,
+                                              borderMode=cv2.BORDER_WRAP)
+        return out
 
     def camera(self) -> CameraModel:
         """Colour and depth share the lens here (depth already in the colour frame)."""
@@ -154,8 +189,7 @@ class World:
         plane = k @ np.column_stack([rot[:, 1] * res, rot[:, 0] * res, t])
         # only the rows below the horizon: the same pixels, half the work
         below = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -horizon], [0.0, 0.0, 1.0]]) @ plane
-        grey[horizon:] = cv2.warpPerspective(self.ground, below, (w, h - horizon), flags=cv2.INTER_LINEAR,
-                                             borderMode=cv2.BORDER_WRAP)
+        grey[horizon:] = self._ground_rows(below, w, h - horizon)
         depth = np.zeros((h, w), np.float32)
         v = np.arange(horizon, h, dtype=np.float32)
         z_ground = altitude * intr.fy / np.maximum(v - intr.ppy, 1e-3)
@@ -198,7 +232,7 @@ class World:
             mask = np.zeros((h, w), np.uint8)
             beats = self._k / max(self.style.fps, 1.0) * self.style.flap_hz
             shape = sp.kind if self.style.shapes and sp.kind in ("bird", "drone") else "disc"
-            _draw_object(mask, shape, u, vv, r, beats)
+            draw_object(mask, shape, u, vv, r, beats)
             alpha = mask.astype(np.float32) / 255.0
             grey = (grey * (1 - alpha) + sp.grey * alpha).astype(np.uint8)
             depth[mask > 127] = float(p[2])
@@ -224,7 +258,7 @@ class World:
         return colour, (depth * 1000.0).astype(np.uint16), seen
 
 
-def _draw_object(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float) -> None:
+def draw_object(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float) -> None:
     """Draw a disc, bird or quadrotor of half-span ``r`` px at (u, v) into ``mask`` (255 =
     covered), each pixel's value its covered fraction: drawn supersampled in a patch around it
     and averaged down, so the image's size and position change continuously with the range
