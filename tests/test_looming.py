@@ -109,6 +109,30 @@ def test_partially_cut_by_the_frame_edge_the_uncut_side_keeps_the_size() -> None
 
 
 
+def test_a_box_ending_in_the_detectors_border_band_is_cut_by_the_edge() -> None:
+    """Static scenery sliding in at the right edge in forward flight: the detector clears a
+    4 px band and its dilation grows blobs 2 px back, so the box ends 3 px short of the edge
+    while its width grows. With the decision's margin (border + half the growth + 1) the width
+    counts as cut and the steady height says no approach; at the bare 2 px the width's growth
+    read as looming (object-free flight, seed 41: τ 0.98 s, evaded)."""
+    from app.camera import CameraModel
+    from app.config import DecisionConfig
+    from app.decision.policy import DecisionMaker
+
+    dm = DecisionMaker(DecisionConfig(), CameraModel(K, K), mask_growth_px=4, border_px=4)
+    assert dm.edge_px == 7.0
+    bare, margin = LoomingEstimator(K, window_s=1.0), LoomingEstimator(K, window_s=1.0, edge_px=dm.edge_px)
+    for i in range(31):
+        t = i / FPS
+        w = 14.0 / (1.0 - t / 1.5)  # growing inwards from the band as an approach would
+        box = (K.width - 3.0 - w, 200.0, w, 14.0)
+        bare.add(t, box)
+        margin.add(t, box)
+    eb, em = bare.estimate(1.0), margin.estimate(1.0)
+    assert eb is not None and eb.tau_s is not None and eb.tau_s < 2.0  # the old margin's mistake
+    assert em is None or em.tau_s is None
+
+
 def test_the_camera_rotation_is_carried_out_of_the_bearing_rate() -> None:
     """The camera yaws at 20 deg/s while a ball comes straight at it: through the
     frame-to-frame homography (K R K^-1) the passage stays at the camera."""

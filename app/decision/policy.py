@@ -238,10 +238,16 @@ class DecisionMaker:
         Colour/depth calibration for the colour → depth pixel correspondence.
     """
 
-    def __init__(self, cfg: DecisionConfig, camera: CameraModel, mask_growth_px: float = 0.0) -> None:
+    def __init__(self, cfg: DecisionConfig, camera: CameraModel, mask_growth_px: float = 0.0,
+                 border_px: float = 0.0) -> None:
         self.cfg = cfg
         self.camera = camera
         self.mask_growth_px = mask_growth_px  # what the motion mask's dilation adds to a blob, px
+        # A blob ends this close to the frame's edge when the edge cuts it: the detector clears
+        # a border_px band, and the dilation grows it back by half its growth (a tree sliding
+        # in at the edge in forward flight, its box 3 px short of the edge, read as looming,
+        # τ 0.98 s, and evaded: object-free flight, seed 41)
+        self.edge_px = max(2.0, border_px + mask_growth_px / 2 + 1)
         self.avoid_m = avoid_distance_m(cfg)
         self._tracks: dict[int, _Track3D] = {}
         self._looming: dict[int, LoomingEstimator] = {}
@@ -288,8 +294,8 @@ class DecisionMaker:
             if est is None:
                 est = self._looming[t.track_id] = LoomingEstimator(
                     self.camera.color, c.looming_window_s, c.looming_min_samples,
-                    size_bias_px=self.mask_growth_px, max_chi2=c.looming_max_chi2,
-                    min_size_px=c.looming_min_size_px)
+                    size_bias_px=self.mask_growth_px, edge_px=self.edge_px,
+                    max_chi2=c.looming_max_chi2, min_size_px=c.looming_min_size_px)
             else:
                 est.carry(derotation)
             if t.matched and t.cluster is not None:

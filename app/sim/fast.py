@@ -49,7 +49,8 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
                              paced=False)
     perception = Perception(cfg.perception)
     decider = DecisionMaker(cfg.decision, camera.lens,
-                            mask_growth_px=cfg.perception.detection.dilate_ksize - 1)
+                            mask_growth_px=cfg.perception.detection.dilate_ksize - 1,
+                            border_px=cfg.perception.detection.border_px)
     command_frames: list[int] = []
     frames = 0
     for frame in camera:

@@ -96,7 +96,8 @@ def run_replay(
     decider = None
     if source.has_depth:
         decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera),
-                              mask_growth_px=cfg.perception.detection.dilate_ksize - 1)
+                              mask_growth_px=cfg.perception.detection.dilate_ksize - 1,
+                              border_px=cfg.perception.detection.border_px)
     stats = ReplayStats()
     writer: cv2.VideoWriter | None = None
     video_path = out_dir / "annotated.mp4" if out_dir is not None else None
