@@ -39,7 +39,7 @@ from filterpy.common import Q_discrete_white_noise
 from filterpy.kalman import KalmanFilter
 
 from app.camera import CameraModel
-from app.config import DecisionConfig, avoid_distance_m
+from app.config import DecisionConfig, DetectionConfig, avoid_distance_m
 from app.decision.depth import object_depth
 from app.decision.looming import ImageEstimate, LoomingEstimator
 from app.decision.response import ResponseModel
@@ -258,6 +258,13 @@ class DecisionMaker:
         self._engaged: _Engagement | None = None
         self.response = ResponseModel(cfg.response_dead_time_s, cfg.response_lag_s,
                                       cfg.response_accel_mps2, min(cfg.evade_speed_mps, cfg.max_speed_mps))
+
+    @classmethod
+    def for_perception(cls, cfg: DecisionConfig, camera: CameraModel,
+                       detection: DetectionConfig) -> DecisionMaker:
+        """A decision that knows what the detector does to a blob's box: its dilation's growth
+        and the border band it clears along the frame's edges."""
+        return cls(cfg, camera, mask_growth_px=detection.dilate_ksize - 1, border_px=detection.border_px)
 
     def reset(self) -> None:
         self._tracks.clear()

@@ -365,9 +365,8 @@ async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_sig
     decisions: LatestSlot[Decision] = LatestSlot()
     stop, wake = asyncio.Event(), asyncio.Event()
     stats = RunStats(frame_interval_ms=1000.0 / source.fps if source.fps > 0 else math.nan)
-    decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera),
-                              mask_growth_px=cfg.perception.detection.dilate_ksize - 1,
-                              border_px=cfg.perception.detection.border_px)
+    decider = DecisionMaker.for_perception(cfg.decision, source.camera or camera_from_config(cfg.camera),
+                                           cfg.perception.detection)
     controller: Controller
     if cfg.flight.mode == "test-flight":
         tf = TestFlight(cfg.flight, cfg.decision.max_speed_mps)

@@ -48,9 +48,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
                              paced=False)
     perception = Perception(cfg.perception)
-    decider = DecisionMaker(cfg.decision, camera.lens,
-                            mask_growth_px=cfg.perception.detection.dilate_ksize - 1,
-                            border_px=cfg.perception.detection.border_px)
+    decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     command_frames: list[int] = []
     frames = 0
     for frame in camera:

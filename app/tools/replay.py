@@ -95,9 +95,8 @@ def run_replay(
     perception = Perception(cfg.perception)
     decider = None
     if source.has_depth:
-        decider = DecisionMaker(cfg.decision, source.camera or camera_from_config(cfg.camera),
-                              mask_growth_px=cfg.perception.detection.dilate_ksize - 1,
-                              border_px=cfg.perception.detection.border_px)
+        decider = DecisionMaker.for_perception(cfg.decision, source.camera or camera_from_config(cfg.camera),
+                                               cfg.perception.detection)
     stats = ReplayStats()
     writer: cv2.VideoWriter | None = None
     video_path = out_dir / "annotated.mp4" if out_dir is not None else None
