@@ -137,6 +137,9 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--size", type=float, default=0.3, help="single encounter: object diameter, m")
     m.add_argument("--fps", type=float, default=30.0, help="the simulated camera's frame rate (the "
                    "D435i's colour: 30 or 60), frames/s")
+    m.add_argument("--vel-gain", type=float, default=1.8, metavar="P_ACC", help="the stand-in "
+                   "vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8; hardware/px4-companion.params "
+                   "recommends 2.5): how quickly it builds lateral speed")
     m.add_argument("--own-speed", type=float, default=0.0, help="single encounter: the vehicle's "
                    "forward speed (Mission leg), m/s; 0 hovers")
     m.add_argument("--resume", type=Path, metavar="DIR", help="campaign: continue the one in DIR "
@@ -441,6 +444,11 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         return _compare(args.compare)
     if args.trigger:
         cfg = with_trigger(cfg, args.trigger)
+    from app.sim.px4 import XY_VEL_P_ACC_RANGE
+
+    if not XY_VEL_P_ACC_RANGE[0] <= args.vel_gain <= XY_VEL_P_ACC_RANGE[1]:
+        raise UsageError(f"--vel-gain {args.vel_gain:g}: PX4's MPC_XY_VEL_P_ACC takes "
+                         f"{XY_VEL_P_ACC_RANGE[0]:g}-{XY_VEL_P_ACC_RANGE[1]:g}")
     if args.world:
         from app.sim.simulate import world_for
 
@@ -450,7 +458,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
             and not args.resume):
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
-                        world=args.world)
+                        world=args.world, xy_vel_p_acc=args.vel_gain)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
@@ -465,17 +473,18 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
     out = args.resume or args.out
     workers = args.workers or default_workers()
-    encounters = [replace(e, fps=args.fps, world=args.world)
-                  for e in sample_encounters(args.campaign or 0, args.seed)]
-    wide = [replace(e, fps=args.fps, world=args.world) for e in wide_passes(args.wide_passes, args.seed)]
-    cross = [replace(e, fps=args.fps, world=args.world) for e in crossing_set(args.crossing, args.seed)]
-    free = ([replace(e, fps=args.fps, world=args.world) for e in object_free(args.object_free, args.seed)]
-            if args.object_free else [])
+    flown = {"fps": args.fps, "world": args.world, "xy_vel_p_acc": args.vel_gain}
+    encounters = [replace(e, **flown) for e in sample_encounters(args.campaign or 0, args.seed)]
+    wide = [replace(e, **flown) for e in wide_passes(args.wide_passes, args.seed)]
+    cross = [replace(e, **flown) for e in crossing_set(args.crossing, args.seed)]
+    free = [replace(e, **flown) for e in object_free(args.object_free, args.seed)] if args.object_free else []
     fast = not args.realtime_object_free
     plan = {"seed": args.seed, "campaign": args.campaign or 0, "wide_passes": args.wide_passes,
             "crossing": args.crossing,
             "object_free_min": args.object_free, "fps": args.fps, "world": args.world,
             "fast_object_free": fast, "trigger": cfg.decision.trigger, "config": config_digest(cfg)}
+    if args.vel_gain != Encounter.xy_vel_p_acc:  # only then: older campaigns resume as before
+        plan["vel_gain"] = args.vel_gain
     log = ResultLog(out, plan, resume=args.resume is not None)
     everything = [*encounters, *wide, *cross, *free]
     bar = _CampaignBar(len(everything), len(log.done),

@@ -194,7 +194,8 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     lines = [f"# {title}", "",
              f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
              f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, camera "
-             f"{rows[0].encounter.fps if rows else 30:g} fps, wall time {wall_s:.0f} s.", "",
+             f"{rows[0].encounter.fps if rows else 30:g} fps, stand-in vehicle's MPC_XY_VEL_P_ACC "
+             f"{rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}, wall time {wall_s:.0f} s.", "",
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
              "|---|---|---|---|---|---|---|"]

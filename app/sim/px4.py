@@ -14,7 +14,11 @@ as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
   calibrated on PX4 SITL's SIH quadrotor (docs/sitl.md): horizontally dead time 0.15 s and
   time constant 0.79 s (2 m/s commanded → 1 m/s at 0.70 s; SITL 0.58–0.74 s; a stop from
   3 m/s in 2.3 s, SITL 1.4–3.0 s), vertically 0.06 s and 0.15 s (PX4's vertical loop is
-  quicker: a 3 m/s up-diagonal moves 0.5 m in 0.5 s, SITL 0.50–0.65 m).
+  quicker: a 3 m/s up-diagonal moves 0.5 m in 0.5 s, SITL 0.50–0.65 m). The horizontal time
+  constant follows the velocity loop's gain MPC_XY_VEL_P_ACC (settable as a parameter, PX4's
+  default 1.8) as 0.79 s x 1.8 / gain: at 2.5 and 3.0 this model reaches 2 m/s of a 3 m/s
+  command at 0.80 / 0.72 s and moves 1.22 / 1.29 m in the first second, SITL 0.78–0.96 /
+  0.65–0.71 s and 1.04–1.20 / 1.21–1.36 m (docs/sitl.md, "PX4 parameters for a quicker evasion").
 - Body-frame velocity setpoints are yaw-aligned and horizontal, as PX4 applies them; in
   Offboard the vertical speed is capped at MPC_Z_VEL_MAX_UP (3 m/s) / MPC_Z_VEL_MAX_DN
   (1.5 m/s) as PX4's position controller does (mc_pos_control, Offboard constraints).
@@ -48,7 +52,9 @@ _BY_CODE = {v: k for k, v in PX4_MODES.items()}
 
 # Horizontal: fitted to PX4 SITL's SIH quadrotor (2 m/s commanded -> 1 m/s after 0.58-0.74 s).
 DEAD_TIME_S = 0.15
-TAU_S = 0.79
+TAU_S = 0.79  # at MPC_XY_VEL_P_ACC = XY_VEL_P_ACC_DEFAULT
+XY_VEL_P_ACC_DEFAULT = 1.8  # PX4's default
+XY_VEL_P_ACC_RANGE = (1.2, 5.0)  # PX4's parameter range
 ACCEL_LIMIT_MPS2 = 4.0
 # Vertical: PX4's vertical velocity loop is much quicker (MPC_Z_VEL_P_ACC 4 against
 # MPC_XY_VEL_P_ACC 1.8): a 3 m/s up-diagonal reached 1 m/s along the command at 0.22-0.25 s,
@@ -93,7 +99,10 @@ class SimPx4:
 
     def __init__(self, gcs_port: int, rate_hz: float = 50.0, of_loss_t_s: float = 1.0,
                  loss_mode: str = "hold", state: SimState | None = None,
-                 prestream_s: float = 1.0) -> None:
+                 prestream_s: float = 1.0, xy_vel_p_acc: float = XY_VEL_P_ACC_DEFAULT) -> None:
+        lo, hi = XY_VEL_P_ACC_RANGE
+        if not lo <= xy_vel_p_acc <= hi:
+            raise ValueError(f"MPC_XY_VEL_P_ACC {xy_vel_p_acc:g}: PX4 accepts {lo:g}-{hi:g}")
         self.prestream_s = prestream_s
         self.gcs_port = gcs_port
         self.rate_hz = rate_hz
@@ -110,7 +119,8 @@ class SimPx4:
         # PX4's defaults for what this vehicle models (mc_pos_control): in Offboard the
         # vertical speed is capped by MPC_Z_VEL_MAX_UP / _DN whatever the setpoint asks
         self.params: dict[str, float] = {"MIS_TAKEOFF_ALT": 2.5, "COM_OF_LOSS_T": of_loss_t_s,
-                                         "MPC_Z_VEL_MAX_UP": 3.0, "MPC_Z_VEL_MAX_DN": 1.5}
+                                         "MPC_Z_VEL_MAX_UP": 3.0, "MPC_Z_VEL_MAX_DN": 1.5,
+                                         "MPC_XY_VEL_P_ACC": xy_vel_p_acc}
         self._lock = threading.Lock()
         self._link = True
         self._stop = threading.Event()
@@ -324,8 +334,10 @@ class SimPx4:
         tn = c * target[0] - s * target[1]
         te = s * target[0] + c * target[1]
         goal = (tn, te, self._applied_z)
+        lo, hi = XY_VEL_P_ACC_RANGE
+        tau_xy = TAU_S * XY_VEL_P_ACC_DEFAULT / max(lo, min(hi, self.params["MPC_XY_VEL_P_ACC"]))
         for i in range(3):
-            tau, acc = (TAU_Z_S, ACCEL_LIMIT_Z_MPS2) if i == 2 else (TAU_S, ACCEL_LIMIT_MPS2)
+            tau, acc = (TAU_Z_S, ACCEL_LIMIT_Z_MPS2) if i == 2 else (tau_xy, ACCEL_LIMIT_MPS2)
             dv = (goal[i] - st.vel_ned[i]) * (1 - math.exp(-dt / tau))
             lim = acc * dt
             st.vel_ned[i] += max(-lim, min(lim, dv))

@@ -54,6 +54,7 @@ class Encounter:
     fps: float = 30.0
     with_object: bool = True
     world: str = ""  # "package.module:factory" of another world (app.sim.world.load_world); "": built-in
+    xy_vel_p_acc: float = 1.8  # the stand-in vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8)
 
     @property
     def threat(self) -> bool:
@@ -235,7 +236,7 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
                          cruise_mps=enc.own_speed_mps)
         state.pos_ned = [0.0, 0.0, -enc.altitude_m]
         port = free_udp_port()
-        sim = SimPx4(port, state=state).start()
+        sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc).start()
         connection = f"udpin://0.0.0.0:{port}"
     link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
     camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry else link.pose,
