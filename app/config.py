@@ -139,6 +139,21 @@ class DetectionConfig:
         "object the camera follows; Halmstad target group 0.794 / 0.781 with no limit)",
         gt=0, le=1,
     )
+    slow_parallax_tile_px: int = param(
+        32,
+        "where the slow difference marks too much (slow_max_frac), register it again tile by "
+        "tile: the background's residual shift in each tile of this side (Lucas-Kanade at its "
+        "centre, smoothed over its neighbours) is taken out, which cancels the parallax of "
+        "ground the camera flies over (near the horizon it moves by a few pixels in 0.2 s); "
+        "tiles still marked over slow_parallax_tile_frac are left out, px (0 = off)",
+        ge=0,
+    )
+    slow_parallax_tile_frac: float = param(
+        0.1,
+        "a tile of the parallax-registered slow difference marked over this fraction is left "
+        "out: the shift did not explain its background (near ground, trees) (0-1)",
+        gt=0, le=1,
+    )
 
 
 @dataclass(frozen=True)

@@ -307,15 +307,83 @@ class MotionDetector:
         else:
             self._slow_far = None  # shifted once: the next frame warps afresh
         diff = cv2.min(near, far)
+        tolerance = None
         if c.slow_registration_px > 0:
             # 3x3 max - min spans two pixels; at half resolution a pixel is two
             grad = cv2.morphologyEx(cur, cv2.MORPH_GRADIENT, _KERNEL3)
-            diff = cv2.subtract(diff, cv2.convertScaleAbs(grad, alpha=c.slow_registration_px / 4.0))
+            tolerance = cv2.convertScaleAbs(grad, alpha=c.slow_registration_px / 4.0)
+            diff = cv2.subtract(diff, tolerance)
         moving = cv2.threshold(diff, c.threshold, 255, cv2.THRESH_BINARY)[1]
         if cv2.countNonZero(moving) > c.slow_max_frac * diff.size:
-            return None  # the background moved (parallax, a failed chain): not objects
+            # the background moved (parallax, a failed chain): registered again tile by tile,
+            # what the tiles' shifts explain is not objects; else nothing of it is
+            if c.slow_parallax_tile_px <= 0:
+                return None
+            pairs = [nearest(t_cur - c.slow_baseline_s), nearest(t_cur - 2 * c.slow_baseline_s)]
+            olds = [(sm, _HALF @ hh @ _DOUBLE) for _, sm, hh in pairs]
+            parallax = self._slow_parallax(cur, olds, tolerance)
+            if parallax is None:
+                return None
+            diff = parallax
         assert self._shape is not None
         return cv2.pyrUp(diff, dstsize=(self._shape[1], self._shape[0]))  # 0.1 ms; resize: 0.23
+
+    def _slow_parallax(self, cur: np.ndarray, olds: list[tuple[np.ndarray, np.ndarray]],
+                       tolerance: np.ndarray | None) -> np.ndarray | None:
+        """The slow difference with the parallax the homography leaves taken out: each old
+        frame, registered by its homography, is shifted tile by tile (``slow_parallax_tile_px``)
+        by the residual flow Lucas-Kanade finds at the tile's centre (3 x 3 median over tiles,
+        bilinear between centres), the smaller of the two differences kept, less the
+        misregistration tolerance; tiles still marked over ``slow_parallax_tile_frac`` (near
+        ground, whose flow varies within a tile) are left out. None when what is left still
+        marks over ``slow_max_frac``. Half resolution in and out."""
+        c = self.cfg
+        side = max(4, c.slow_parallax_tile_px // 2)
+        h, w = cur.shape
+        ty, tx = h // side, w // side
+        if ty < 3 or tx < 3:
+            return None
+        ys = (np.arange(ty, dtype=np.float32) + 0.5) * side
+        xs = (np.arange(tx, dtype=np.float32) + 0.5) * side
+        centres = np.stack(np.meshgrid(xs - 0.5, ys - 0.5), -1).reshape(-1, 1, 2)
+        win = side | 1
+        grid_x, grid_y = np.meshgrid(np.arange(tx * side, dtype=np.float32),
+                                     np.arange(ty * side, dtype=np.float32))
+        core = cur[:ty * side, :tx * side]
+        diff: np.ndarray | None = None
+        for small, hh in olds:
+            warped = cur.copy()
+            cv2.warpPerspective(small, hh, (w, h), dst=warped, flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_TRANSPARENT)
+            moved, status, _err = cv2.calcOpticalFlowPyrLK(
+                warped, cur, centres, None, winSize=(win, win), maxLevel=2,
+                criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 10, 0.03),
+                minEigThreshold=self.cfg.lk_min_eigen)
+            flow = (moved - centres).reshape(ty, tx, 2)
+            flow[status.reshape(ty, tx) == 0] = 0.0  # featureless (sky): no parallax to find
+            fx = cv2.resize(cv2.medianBlur(np.ascontiguousarray(flow[..., 0]), 3), (tx * side, ty * side),
+                            interpolation=cv2.INTER_LINEAR)
+            fy = cv2.resize(cv2.medianBlur(np.ascontiguousarray(flow[..., 1]), 3), (tx * side, ty * side),
+                            interpolation=cv2.INTER_LINEAR)
+            # LK moved the old frame's point p to p + f in frame t: frame t at q is the old at q - f
+            registered = cv2.remap(warped, grid_x - fx, grid_y - fy, cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_REPLICATE)
+            d = cv2.absdiff(core, registered)
+            diff = d if diff is None else cv2.min(diff, d)
+        assert diff is not None
+        if tolerance is not None:
+            diff = cv2.subtract(diff, tolerance[:ty * side, :tx * side])
+        moving = cv2.threshold(diff, c.threshold, 255, cv2.THRESH_BINARY)[1]
+        frac = cv2.resize(moving, (tx, ty), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+        keep = (frac <= c.slow_parallax_tile_frac).astype(np.uint8)
+        keep = np.repeat(np.repeat(keep, side, axis=0), side, axis=1)
+        diff = cv2.multiply(diff, keep)
+        out = np.zeros_like(cur)
+        out[:ty * side, :tx * side] = diff
+        marked = cv2.countNonZero(cv2.threshold(out, c.threshold, 255, cv2.THRESH_BINARY)[1])
+        if marked > c.slow_max_frac * out.size:
+            return None
+        return out
 
     def _set_slow_cur(self, gray: np.ndarray, t_s: float | None) -> None:
         if self.cfg.slow_baseline_s > 0:
