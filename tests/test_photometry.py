@@ -109,3 +109,36 @@ def test_a_flux_that_jumps_is_not_trusted_and_the_boxes_decide() -> None:
     ea, eb = a.estimate(1.0), b.estimate(1.0)
     assert ea is not None and eb is not None and ea.tau_s is not None
     assert ea.tau_s == pytest.approx(eb.tau_s) and ea.size_chi2 == pytest.approx(eb.size_chi2)
+
+
+def test_samples_without_a_flux_are_left_out_of_the_flux_fit_not_the_flux_given_up() -> None:
+    """The ball of the test above, its first samples too faint for a flux (below five of its
+    standard errors) and one patch cut by the edge (no flux): the fit is still the flux's,
+    within 10 % of the true time to contact, and the same as with every sample's flux. With
+    fewer than ``min_samples`` fluxes, or none in the newest sample, it is the boxes'."""
+    k = Intrinsics(160, 120, 615.0, 615.0, 79.5, 59.5)
+    d, z0, vz = 0.3, 40.0, -10.0
+    n = 30
+    every, some, stale = (LoomingEstimator(k, window_s=1.0, min_samples=6, size_bias_px=4.0)
+                          for _ in range(3))
+    boxes_only = LoomingEstimator(k, window_s=1.0, min_samples=6, size_bias_px=4.0)
+    for i in range(n + 1):
+        t = i / 30.0
+        z = z0 + vz * t
+        u, v, r = 80.3 + 0.5 * t, 60.2, k.fx * d / 2 / z
+        b = tuple(float(x) for x in box(u, v, r))
+        f = contrast_flux(frame(u, v, r, seed=i), box(u, v, r))
+        assert f is not None
+        faint = (f[0], f[0] / 4.0) if i < 8 else None if i == 15 else f
+        every.add(t, b, f)  # type: ignore[arg-type]
+        some.add(t, b, faint)  # type: ignore[arg-type]
+        stale.add(t, b, f if i < n else None)  # type: ignore[arg-type]
+        boxes_only.add(t, b)  # type: ignore[arg-type]
+    true_tau = (z0 + vz * n / 30.0) / -vz
+    e_every, e_some = every.estimate(n / 30.0), some.estimate(n / 30.0)
+    assert e_every is not None and e_some is not None and e_some.tau_s is not None
+    assert e_some.tau_s == pytest.approx(true_tau, rel=0.10)
+    assert e_some.tau_s == pytest.approx(e_every.tau_s, rel=0.05)
+    e_stale, e_boxes = stale.estimate(n / 30.0), boxes_only.estimate(n / 30.0)
+    assert e_stale is not None and e_boxes is not None
+    assert e_stale.tau_s == e_boxes.tau_s and e_stale.size_chi2 == e_boxes.size_chi2
