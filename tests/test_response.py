@@ -240,3 +240,42 @@ def test_looming_that_no_object_could_have_is_not_fused_with_the_range() -> None
     assert wild.tau_s == pytest.approx(11.0 / 6.0) and wild.course_sizes is None
     sane = dm._fuse(depth, image(1.5), 1)  # 7.3 m/s: the image's looming is the one taken
     assert sane.source == "fused" and sane.tau_s == pytest.approx(1.5) and sane.course_sizes is not None
+
+
+def test_where_the_images_passage_contradicts_the_depth_tracks_the_depth_track_decides() -> None:
+    """A bird of 0.43 m 6.5 m off, 4.7 m to the left and up, on its way past 2.1 m off: the
+    depth track (bearing x depth, tracked) says so, within 0.37 m. Its blob's course says
+    0.5 m off, within 0.1 m: one of them is wrong, and the image's stated error is the one
+    known to be overconfident. Fused, the passage is the depth track's, and nothing is
+    urgent; where the two agree, the more precise image passage is kept and the same
+    object passing 0.5 m off is a threat."""
+    from app.decision.looming import ImageEstimate
+
+    d, z, tau = 0.43, 6.5, 0.44
+    dm = DecisionMaker(CFG, CAM)
+
+    def depth(crossing: tuple[float, float]) -> ObjectState:
+        return ObjectState(1, (-4.4, -1.7, z), 0.0, True, z / tau, tau, crossing, tau_s=tau,
+                           tau_std_s=0.03, crossing_std_m=0.37, closing_std_mps=1.0)
+
+    def image(passage: tuple[float, float], std_m: float) -> ImageEstimate:
+        p = (-4.4, -1.7, z)
+        v = ((passage[0] - p[0]) / tau, (passage[1] - p[1]) / tau, -z / tau)
+        return ImageEstimate(0.0, 20, (p[0] / z, p[1] / z), (0.0, 0.0), d / z, 1 / tau, 0.05, tau, 0.02,
+                             (passage[0] / d, passage[1] / d), std_m / d, 0.0,
+                             tuple(c / d for c in p), tuple(c / d for c in v))  # type: ignore[arg-type]
+
+    wide = depth((-1.92, -0.78))
+    contradicted = dm._fuse(wide, image((0.18, -0.53), 0.1), 1)
+    assert contradicted.source == "fused" and contradicted.tau_s == pytest.approx(tau)
+    assert contradicted.course_sizes is None and contradicted.miss_sizes is None
+    (_, passage, std), = contradicted.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert passage[:2] == pytest.approx((-1.92, -0.78)) and std == pytest.approx(0.37)
+    assert dm.assess(contradicted) is None  # 2.1 m off: nothing to do
+    vaguer = dm._fuse(wide, image((-1.5, -0.9), 0.6), 1)  # agrees, less precise: the depth's
+    assert vaguer.course_sizes is None
+    near = dm._fuse(depth((0.3, -0.4)), image((0.18, -0.53), 0.1), 1)  # agrees, more precise
+    assert near.course_sizes is not None
+    (_, passage, std), = near.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert math.hypot(passage[0] - 0.18, passage[1] + 0.53) < 0.05 and std == pytest.approx(0.1)
+    assert dm.assess(near) is not None
