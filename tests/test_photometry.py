@@ -10,7 +10,7 @@ import pytest
 
 from app.camera import Intrinsics
 from app.decision.looming import LoomingEstimator
-from app.perception.photometry import contrast_flux
+from app.perception.photometry import contrast_flux, core_area
 from app.sim.world import draw_object
 
 SKY, OBJECT, NOISE = 180.0, 60.0, 1.5
@@ -142,3 +142,25 @@ def test_samples_without_a_flux_are_left_out_of_the_flux_fit_not_the_flux_given_
     e_stale, e_boxes = stale.estimate(n / 30.0), boxes_only.estimate(n / 30.0)
     assert e_stale is not None and e_boxes is not None
     assert e_stale.tau_s == e_boxes.tau_s and e_stale.size_chi2 == e_boxes.size_chi2
+
+
+def test_the_core_area_ignores_the_texture_around_the_object_that_the_flux_sums_in() -> None:
+    """A dark disc on ground-like bands (+-6 grey over 6 px) drifting under it: the flux's
+    square root over the radius wanders with the bands inside the patch, the core area's
+    stays at sqrt(pi) within 8 %; with the contrast within the texture there is none."""
+    rows = np.arange(120, dtype=np.float32)[:, None]
+    bands = 6.0 * np.sin(rows / 6.0) + np.zeros((120, 160), np.float32)
+    core_ratios, flux_ratios = [], []
+    for i in range(12):
+        v = 50.0 + 1.3 * i
+        base = frame(80.3, v, 5.0, seed=i).astype(np.float32)
+        g = np.clip(base + bands, 0, 255).astype(np.uint8)
+        a = core_area(g, box(80.3, v, 5.0))
+        f = contrast_flux(g, box(80.3, v, 5.0))
+        assert a is not None and f is not None
+        core_ratios.append(math.sqrt(a[0]) / 5.0)
+        flux_ratios.append(math.sqrt(f[0]) / 5.0)
+    assert np.allclose(core_ratios, math.sqrt(math.pi), rtol=0.08)
+    assert np.ptp(core_ratios) / np.mean(core_ratios) < np.ptp(flux_ratios) / np.mean(flux_ratios)
+    faint = np.clip(np.full((120, 160), 100.0) + bands * 3 + (frame(80.3, 60.0, 5.0) < 120) * -10.0, 0, 255)
+    assert core_area(faint.astype(np.uint8), box(80.3, 60.0, 5.0)) is None

@@ -60,6 +60,7 @@ class ImageEstimate:
     position_sizes: tuple[float, float, float] | None = None
     velocity_sizes: tuple[float, float, float] | None = None
     size_chi2: float = 1.0  # how far the size's samples stray from a constant-velocity course
+    size_source: str = "box"  # what measured the size: core or flux (photometry), or box
 
     def miss_m(self, diameter_m: float) -> tuple[float, float] | None:
         """The crossing point in metres for an object of ``diameter_m``."""
@@ -84,6 +85,7 @@ class _Sample:
     w_ok: bool  # the width is not cut by the frame edge
     h_ok: bool
     flux: tuple[float, float] | None = None  # contrast flux and its std (photometry), grey x px²
+    core: tuple[float, float] | None = None  # core area and its std (photometry), px²
 
 
 @dataclass(frozen=True)
@@ -188,16 +190,16 @@ class LoomingEstimator:
             s.u, s.v = float(u), float(v)
 
     def add(self, t_s: float, box: tuple[float, float, float, float],
-            flux: tuple[float, float] | None = None) -> None:
-        """A measured box (x, y, w, h, px) at ``t_s``, with its contrast flux (flux, std)
-        when perception measured one (app.perception.photometry)."""
+            flux: tuple[float, float] | None = None, core: tuple[float, float] | None = None) -> None:
+        """A measured box (x, y, w, h, px) at ``t_s``, with its contrast flux and core area
+        (value, std) when perception measured them (app.perception.photometry)."""
         x, y, w, h = box
         e, W, H = self.edge_px, self.k.width, self.k.height
         left, right = x <= e, x + w >= W - e
         top, bottom = y <= e, y + h >= H - e
         self._samples.append(_Sample(t_s, x + w / 2, y + h / 2, w, h,
                                      not (left or right), not (top or bottom),
-                                     not (left or right), not (top or bottom), flux))
+                                     not (left or right), not (top or bottom), flux, core))
         while self._samples and t_s - self._samples[0].t > self.window_s:
             self._samples.popleft()
 
@@ -217,12 +219,15 @@ class LoomingEstimator:
         # The course in object diameters, q = P / D = (b_x, b_y, 1) / θ: linear in time for
         # any constant relative velocity (the pinhole's 1/Z cancels), so a straight line fits
         # it exactly over any window, with no bias from the curvature of ln θ or of the bearing.
-        # The size from the contrast flux where enough samples of the window have one and it fits
-        # a course (sqrt(flux) is proportional to the angular size, to a fraction of a pixel),
-        # scaled to the boxes' sizes; else from the boxes.
-        fit = self._flux_fit(t, size, f, ss)
+        # The size from the core area where enough samples of the window have one and it fits
+        # a course, else from the contrast flux likewise (the square root of either is
+        # proportional to the angular size, to a fraction of a pixel), scaled to the boxes'
+        # sizes; else from the boxes.
+        fit, source = self._photometric_fit(t, size, f, [s.core for s in ss]), "core"
         if fit is None:
-            fit = self._box_fit(t, size, f, sig)
+            fit, source = self._photometric_fit(t, size, f, [s.flux for s in ss]), "flux"
+        if fit is None:
+            fit, source = self._box_fit(t, size, f, sig), "box"
         if fit is None:
             return None
         lz, qz, sizes_sig, sized = fit
@@ -265,7 +270,8 @@ class LoomingEstimator:
             miss = (lx.at(t_c), ly.at(t_c))
             miss_se = max(math.sqrt(ln.var_at(t_c) + ln.slope**2 * var_tau) for ln in (lx, ly))
         return ImageEstimate(t_s, len(ss), bearing, rate, theta, expansion, exp_se, tau, tau_se,
-                             miss, miss_se, rate_se, (x_now, y_now, z_now), (lx.slope, ly.slope, vz), lz.chi2)
+                             miss, miss_se, rate_se, (x_now, y_now, z_now), (lx.slope, ly.slope, vz), lz.chi2,
+                             source)
 
     def _box_fit(self, t: np.ndarray, size: np.ndarray, f: float, sig: float
                  ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:
@@ -283,24 +289,27 @@ class LoomingEstimator:
             return None
         return lz, qz, np.full_like(size, sig), sized
 
-    def _flux_fit(self, t: np.ndarray, size: np.ndarray, f: float, ss: list[_Sample]
-                  ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:
-        """As :meth:`_box_fit` from the contrast flux of the samples that have one clearly
-        above its noise: None unless ``min_samples`` of them, the newest among them, span
-        half the window, and the sizes they give keep to a course (``max_chi2``). The
-        samples without one (a patch at the frame's edge, a faint first frame) are left out
-        rather than the flux given up for the boxes, whose ghosts and merges bias the
-        expansion high (open loop, seed 11: boxes 1.05-1.31x the true expansion at the median,
-        2.5-3.4x at the 90th percentile; the flux 0.97-0.98x, 1.09-1.14x)."""
-        ok = np.array([s.flux is not None and s.flux[0] > FLUX_MIN_SIGMAS * s.flux[1] for s in ss])
+    def _photometric_fit(self, t: np.ndarray, size: np.ndarray, f: float,
+                         measured: list[tuple[float, float] | None]
+                         ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:
+        """As :meth:`_box_fit` from a photometric size (value, std; its square root is
+        proportional to the angular size) of the samples that have one clearly above its
+        noise: None unless ``min_samples`` of them, the newest among them, span half the
+        window, and the sizes they give keep to a course (``max_chi2``). The samples without
+        one (a patch at the frame's edge, a faint first frame) are left out rather than the
+        measure given up for the boxes, whose ghosts and merges bias the expansion high (per
+        frame against the truth, open loop seed 11: boxes 1.05-1.31x the true expansion at the
+        median, 2.5-3.4x at the 90th percentile; the flux 0.97-0.98x and 0.72-1.41x between
+        its 10th and 90th; the core area 0.99x and 0.93-1.07x)."""
+        ok = np.array([m is not None and m[0] > FLUX_MIN_SIGMAS * m[1] for m in measured])
         if int(ok.sum()) < self.min_samples or not ok[-1]:
             return None
         if float(t[ok][-1] - t[ok][0]) < 0.5 * min(self.window_s, float(t[-1] - t[0])):
             return None
-        flux = np.array([s.flux[0] for s, good in zip(ss, ok, strict=True) if good])  # type: ignore[index]
-        std = np.array([s.flux[1] for s, good in zip(ss, ok, strict=True) if good])  # type: ignore[index]
-        root = np.sqrt(flux)
-        k = float(np.median(size[ok] / root))  # px per sqrt(flux): the boxes' scale, not their steps
+        value = np.array([m[0] for m, good in zip(measured, ok, strict=True) if good])  # type: ignore[index]
+        std = np.array([m[1] for m, good in zip(measured, ok, strict=True) if good])  # type: ignore[index]
+        root = np.sqrt(value)
+        k = float(np.median(size[ok] / root))  # px per sqrt(measure): the boxes' scale, not their steps
         sz = np.empty_like(size)
         sz_sig = np.full_like(size, self.pixel_noise_px)
         sz[ok] = k * root

@@ -54,3 +54,46 @@ def contrast_flux(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[flo
     # the sum's own noise plus the background's error spread over the whole inner patch
     std = max(spread, 0.5) * (math.sqrt(n) + n / math.sqrt(m))
     return flux, max(std, REL_FLOOR * flux)
+
+
+CORE_SIGMAS = 3.0  # half the core's contrast must stand this many ring spreads above the ring
+CORE_PEAK_PX = 5  # the core's contrast: the median of this many most extreme pixels
+
+
+def core_area(grey: np.ndarray, box: tuple[int, int, int, int]) -> tuple[float, float] | None:
+    """(area, its standard error), px², of the pixels of ``box``'s patch (as
+    :func:`contrast_flux`'s) that differ from the ring's mean, in the object's sense, by more
+    than half the object's own contrast (its core's: the median of its ``CORE_PEAK_PX`` most
+    extreme pixels). sqrt(area) is proportional to the angular size: a half-maximum area,
+    which neither the contrast nor the texture around the object inside the patch moves (the
+    flux sums that texture in: against ground its square root over the radius ran 8.0-15.1,
+    the core area's 1.70-1.82 where a disc gives sqrt(pi) = 1.77). None when the patch
+    leaves the frame or half the contrast is within ``CORE_SIGMAS`` ring spreads (texture would
+    count as object)."""
+    height, width = grey.shape[:2]
+    x, y, w, h = box
+    g = MARGIN_PX + RING_PX
+    x0, y0, x1, y1 = x - g, y - g, x + w + g, y + h + g
+    if x0 < 0 or y0 < 0 or x1 > width or y1 > height or w <= 0 or h <= 0:
+        return None
+    patch = grey[y0:y1, x0:x1].astype(np.float32)
+    inner = patch[RING_PX:-RING_PX, RING_PX:-RING_PX]
+    n_all, n_in = patch.size, inner.size
+    s_all, s_in = float(patch.sum()), float(inner.sum())
+    q_all, q_in = float((patch * patch).sum()), float((inner * inner).sum())
+    m = n_all - n_in
+    bg = (s_all - s_in) / m
+    spread = math.sqrt(max(0.0, (q_all - q_in) / m - bg * bg))
+    d = (inner - bg).ravel()
+    if s_in - bg * n_in < 0:
+        d = -d  # a dark object: its pixels below the ring's
+    k = min(CORE_PEAK_PX, d.size)
+    c = float(np.median(np.partition(d, d.size - k)[-k:]))
+    if c / 2 < CORE_SIGMAS * max(spread, 0.5):
+        return None
+    area = float(np.count_nonzero(d > c / 2))
+    # pixels near the half-contrast line flip with the noise: the contour's length times the
+    # band the noise moves it by (the edge rises over about two pixels)
+    perimeter = 2.0 * math.sqrt(math.pi * area)
+    std = math.sqrt(1.0 + perimeter * 2.0 * max(spread, 0.5) / c)
+    return area, max(std, REL_FLOOR * area)

@@ -71,6 +71,8 @@ class TrackReport:
     reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
     # the matched cluster's contrast flux and its std (app.perception.photometry), grey x px²
     flux: tuple[float, float] | None = None
+    # its core's area (pixels beyond half its contrast) and that's std, px² (photometry)
+    core: tuple[float, float] | None = None
 
     def scored(self, confidence: float, features: tuple[float, ...], reported: bool) -> TrackReport:
         """This report with its confidence filled in (as ``dataclasses.replace``, which looks the
@@ -79,16 +81,17 @@ class TrackReport:
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
             matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
             trail=self.trail, confidence=confidence, features=features, reported=reported,
-            flux=self.flux,
+            flux=self.flux, core=self.core,
         )
 
-    def with_flux(self, flux: tuple[float, float] | None) -> TrackReport:
-        """This report with its contrast flux filled in."""
+    def with_flux(self, flux: tuple[float, float] | None,
+                  core: tuple[float, float] | None = None) -> TrackReport:
+        """This report with its contrast flux and core area filled in."""
         return TrackReport(
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
             matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
             trail=self.trail, confidence=self.confidence, features=self.features,
-            reported=self.reported, flux=flux,
+            reported=self.reported, flux=flux, core=core,
         )
 
 
