@@ -15,14 +15,14 @@ the angular size θ = D/Z. Then, exactly:
 The estimator fits the course in object diameters, (b_x, b_y, 1) / θ, which is linear in
 time on any straight approach, over a sliding window (weighted least squares, so a few
 pixels of blob noise average out; the residuals give the uncertainty). The size is the
-object's contrast flux where perception measured one for enough samples, the newest among
-them (its square root is proportional to θ to a fraction of a pixel:
-app.perception.photometry), else the box's larger side, which steps by whole pixels and
-carries the motion mask's smear. Samples whose box touches the frame edge are partially
-occluded: their cut dimension is not used for the size, nor the cut axis's centre for the
-bearing. Past samples are carried into the newest frame's pixels through the camera's
-rotation between frames (K·R·K⁻¹, from the attitude or a gyro),
-so the vehicle's own rotation does not read as bearing rate. Its translation must stay in:
+object's core area where perception measured one for enough samples, the newest among them,
+else its contrast flux likewise (the square root of either is proportional to θ to a
+fraction of a pixel: app.perception.photometry), else the box's larger side, which steps
+by whole pixels and carries the motion mask's smear. Samples whose box touches the frame
+edge are partially occluded: their cut dimension is not used for the size, nor the cut
+axis's centre for the bearing. Past samples are carried into the newest frame's pixels
+through the camera's rotation between frames (K·R·K⁻¹, from the attitude or a gyro), so
+the vehicle's own rotation does not read as bearing rate. Its translation must stay in:
 it is relative motion, so the background's homography (which holds the parallax of near
 ground) is not the thing to carry them through.
 """
@@ -60,7 +60,6 @@ class ImageEstimate:
     position_sizes: tuple[float, float, float] | None = None
     velocity_sizes: tuple[float, float, float] | None = None
     size_chi2: float = 1.0  # how far the size's samples stray from a constant-velocity course
-    size_source: str = "box"  # what measured the size: core or flux (photometry), or box
 
     def miss_m(self, diameter_m: float) -> tuple[float, float] | None:
         """The crossing point in metres for an object of ``diameter_m``."""
@@ -223,11 +222,11 @@ class LoomingEstimator:
         # a course, else from the contrast flux likewise (the square root of either is
         # proportional to the angular size, to a fraction of a pixel), scaled to the boxes'
         # sizes; else from the boxes.
-        fit, source = self._photometric_fit(t, size, f, [s.core for s in ss]), "core"
+        fit = self._photometric_fit(t, size, f, [s.core for s in ss])
         if fit is None:
-            fit, source = self._photometric_fit(t, size, f, [s.flux for s in ss]), "flux"
+            fit = self._photometric_fit(t, size, f, [s.flux for s in ss])
         if fit is None:
-            fit, source = self._box_fit(t, size, f, sig), "box"
+            fit = self._box_fit(t, size, f, sig)
         if fit is None:
             return None
         lz, qz, sizes_sig, sized = fit
@@ -270,8 +269,7 @@ class LoomingEstimator:
             miss = (lx.at(t_c), ly.at(t_c))
             miss_se = max(math.sqrt(ln.var_at(t_c) + ln.slope**2 * var_tau) for ln in (lx, ly))
         return ImageEstimate(t_s, len(ss), bearing, rate, theta, expansion, exp_se, tau, tau_se,
-                             miss, miss_se, rate_se, (x_now, y_now, z_now), (lx.slope, ly.slope, vz), lz.chi2,
-                             source)
+                             miss, miss_se, rate_se, (x_now, y_now, z_now), (lx.slope, ly.slope, vz), lz.chi2)
 
     def _box_fit(self, t: np.ndarray, size: np.ndarray, f: float, sig: float
                  ) -> tuple[_Line, np.ndarray, np.ndarray, bool] | None:

@@ -109,7 +109,6 @@ class ObjectState:
     # the image's course in object diameters: position P/D now, relative velocity (dP/dt)/D
     course_sizes: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     closing_std_mps: float | None = None  # the depth track's closing speed's standard error, m/s
-    size_source: str | None = None  # what measured the image's size: core, flux or box (none: no image)
 
     def passages(self, d_min: float, d_max: float
                  ) -> list[tuple[float, tuple[float, float, float], float]]:
@@ -355,7 +354,7 @@ class DecisionMaker:
         return ObjectState(tid, xyz, -math.inf, False, closing, None, None, source="image",
                            tau_s=e.tau_s, tau_std_s=e.tau_std_s, miss_sizes=e.miss_sizes,
                            miss_sizes_std=e.miss_sizes_std, seen_s=self._seen.get(tid, -math.inf),
-                           course_sizes=_course(e), size_source=e.size_source)
+                           course_sizes=_course(e))
 
     def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
         """The depth track's state with the image's looming: time to the passage by inverse

@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.config import PerceptionConfig
+from app.perception import photometry
 from app.perception.confidence import TrackConfidence
 from app.perception.detection import MotionDetector
 from app.perception.frames import Frame, to_grey
-from app.perception.photometry import contrast_flux, core_area
 from app.perception.recognition import Blobs, Cluster, Recognizer
 from app.perception.tracking import Tracker, TrackReport
 
@@ -80,8 +80,7 @@ class Perception:
                 tracks = self.confidence(current_grey, tracks)
                 # each matched object's flux and core area, for looming (a box's size steps by
                 # whole pixels, and jumps with what its blob merges with)
-                tracks = [t.with_flux(contrast_flux(current_grey, t.cluster.box),
-                                      core_area(current_grey, t.cluster.box))
+                tracks = [t.with_flux(*photometry.measure(current_grey, t.cluster.box))
                           if t.matched and t.cluster is not None else t for t in tracks]
         t3 = time.perf_counter()
         timings = {
