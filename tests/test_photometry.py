@@ -164,3 +164,27 @@ def test_the_core_area_ignores_the_texture_around_the_object_that_the_flux_sums_
     assert np.ptp(core_ratios) / np.mean(core_ratios) < np.ptp(flux_ratios) / np.mean(flux_ratios)
     faint = np.clip(np.full((120, 160), 100.0) + bands * 3 + (frame(80.3, 60.0, 5.0) < 120) * -10.0, 0, 255)
     assert core_area(faint.astype(np.uint8), box(80.3, 60.0, 5.0)) is None
+
+
+def test_a_photometric_size_noisier_than_it_says_fails_its_goodness_of_fit_and_the_boxes_decide() -> None:
+    """A photometric size states its error, so its fit is a goodness-of-fit test. Sizes that
+    keep to a course but scatter 2.5 times their stated error (reduced chi-square ~6: within
+    the boxes' max_chi2 of 9, beyond what a course gives once in a thousand fits) are left to
+    the boxes; the same sizes within their stated error are the fit's."""
+    k = Intrinsics(160, 120, 615.0, 615.0, 79.5, 59.5)
+    rng = np.random.default_rng(4)
+    honest, noisy, boxes_only = (LoomingEstimator(k, window_s=1.0, min_samples=6, max_chi2=9.0)
+                                 for _ in range(3))
+    for i in range(31):
+        t = i / 30.0
+        z = 12.0 - 6.0 * t
+        s = k.fx * 0.3 / z
+        bx = (80.0 - s / 2, 60.0 - s / 2, s, s)
+        area, std = math.pi * s * s / 4, 0.02 * math.pi * s * s / 4
+        honest.add(t, bx, None, (area + rng.normal(0, std), std))
+        noisy.add(t, bx, None, (area + rng.normal(0, 2.5 * std), std))
+        boxes_only.add(t, bx)
+    eh, en, eb = honest.estimate(1.0), noisy.estimate(1.0), boxes_only.estimate(1.0)
+    assert eh is not None and en is not None and eb is not None
+    assert eh.size_chi2 < 2.0 and eh.size_chi2 != eb.size_chi2
+    assert en.size_chi2 == pytest.approx(eb.size_chi2) and en.tau_s == pytest.approx(eb.tau_s)
