@@ -326,11 +326,10 @@ class LoomingEstimator:
         std = np.array([m[1] for m, good in zip(measured, ok, strict=True) if good])  # type: ignore[index]
         root = np.sqrt(value)
         k = float(np.median(size[ok] / root))  # px per sqrt(measure): the boxes' scale, not their steps
-        sz = np.empty_like(size)
+        sz = size.copy()  # the samples without a measure: placed on the fitted course below
         sz_sig = np.full_like(size, self.pixel_noise_px)
         sz[ok] = k * root
         sz_sig[ok] = k * 0.5 * std / root
-        sz[~ok] = size[~ok]
         qz = f / sz
         lz = _wfit(t[ok], qz[ok], f * sz_sig[ok] / sz[ok] ** 2)
         if lz is None or lz.chi2 > min(self.max_chi2, _chi2_bound(lz.dof)):

@@ -80,7 +80,7 @@ class Perception:
                 tracks = self.confidence(current_grey, tracks)
                 # each matched object's flux and core area, for looming (a box's size steps by
                 # whole pixels, and jumps with what its blob merges with)
-                tracks = [t.with_flux(*photometry.measure(current_grey, t.cluster.box))
+                tracks = [t.with_photometry(*photometry.measure(current_grey, t.cluster.box))
                           if t.matched and t.cluster is not None else t for t in tracks]
         t3 = time.perf_counter()
         timings = {

@@ -84,8 +84,8 @@ class TrackReport:
             flux=self.flux, core=self.core,
         )
 
-    def with_flux(self, flux: tuple[float, float] | None,
-                  core: tuple[float, float] | None = None) -> TrackReport:
+    def with_photometry(self, flux: tuple[float, float] | None,
+                        core: tuple[float, float] | None) -> TrackReport:
         """This report with its contrast flux and core area filled in."""
         return TrackReport(
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
