@@ -121,7 +121,7 @@ class World:
         # Depth noise: one smooth unit field (stereo matching correlates neighbouring pixels),
         # a fresh random window of it each frame.
         field = cv2.GaussianBlur(rng.normal(0, 1, (intr.height + 64, intr.width + 64)), (0, 0), 2.0)
-        self._depth_field = (field / field.std()).astype(np.float32)
+        self._disparity_noise = self.style.depth_subpixel * (field / field.std()).astype(np.float32)  # px
         self._depth_rng = np.random.default_rng(self.style.seed + 1)
 
     def _ground_rows(self, texel_to_px: np.ndarray, w: int, rows: int) -> np.ndarray:
@@ -179,9 +179,13 @@ class World:
         horizon = int(math.floor(intr.ppy)) + 1  # rows above see sky (level camera)
         drift = self.style.cloud_drift_px * self._k
         shift = int(round(yaw_rad * intr.fx + drift)) % self.sky.shape[1]
-        cols = (np.arange(w) - int(intr.ppx) + shift + self.sky.shape[1] // 2) % self.sky.shape[1]
+        n_sky = self.sky.shape[1]
+        first = (shift - int(intr.ppx) + n_sky // 2) % n_sky  # the columns first, first + 1, ...
         grey = np.empty((h, w), np.uint8)
-        grey[:horizon] = self.sky[:horizon][:, cols]
+        run = min(w, n_sky - first)  # up to the cylinder's seam, then on from its start
+        grey[:horizon, :run] = self.sky[:horizon, first:first + run]
+        if run < w:
+            grey[:horizon, run:] = self.sky[:horizon, :w - run]
 
         # ground: texture (u = east, v = north, 0.1 m texels, tiled) -> image
         res = self.ground_res_m
@@ -232,10 +236,12 @@ class World:
             mask = np.zeros((h, w), np.uint8)
             beats = self._k / max(self.style.fps, 1.0) * self.style.flap_hz
             shape = sp.kind if self.style.shapes and sp.kind in ("bird", "drone") else "disc"
-            draw_object(mask, shape, u, vv, r, beats)
-            alpha = mask.astype(np.float32) / 255.0
-            grey = (grey * (1 - alpha) + sp.grey * alpha).astype(np.uint8)
-            depth[mask > 127] = float(p[2])
+            x0, y0, x1, y1 = draw_object(mask, shape, u, vv, r, beats)
+            if x1 > x0 and y1 > y0:  # blended in the patch drawn: outside it nothing changes
+                alpha = mask[y0:y1, x0:x1].astype(np.float32) / 255.0
+                patch = grey[y0:y1, x0:x1]
+                grey[y0:y1, x0:x1] = (patch * (1 - alpha) + sp.grey * alpha).astype(np.uint8)
+                depth[y0:y1, x0:x1][mask[y0:y1, x0:x1] > 127] = float(p[2])
             seen[sp.object_id] = (float(u), float(vv), float(r), float(p[2]))
 
         noisy = grey.astype(np.float32) + self.noise[self._k % len(self.noise)]
@@ -246,29 +252,34 @@ class World:
             # σ_z = z² subpixel / (f B), the formula above; a far surface (d → 0) stays far
             # or has no depth, it never comes out near.
             dy, dx = self._depth_rng.integers(0, 64, 2)
-            window = self._depth_field[dy:dy + h, dx:dx + w]
+            window = self._disparity_noise[dy:dy + h, dx:dx + w]
+            # No data (0) has an infinite disparity and comes back 0; a disparity at or below
+            # 0 comes back at infinity or behind the camera, out of the range kept below.
             fb = D435I_DEPTH_FX_PX * D435I_BASELINE_M
-            valid = depth > 0
-            disparity = np.zeros_like(depth)
-            np.divide(fb, depth, out=disparity, where=valid)
-            disparity += self.style.depth_subpixel * window
-            depth = np.zeros_like(depth)
-            np.divide(fb, disparity, out=depth, where=valid & (disparity > fb / 1000.0))
-        depth[(depth > self.max_depth_m) | (depth < 0.2)] = 0.0
-        return colour, (depth * 1000.0).astype(np.uint16), seen
+            with np.errstate(divide="ignore"):
+                disparity = fb / depth
+                disparity += window
+                depth = fb / disparity
+        kept = np.zeros_like(depth)  # the range the D435i returns, 0 elsewhere
+        cv2.copyTo(depth, cv2.inRange(depth, 0.2, self.max_depth_m), kept)
+        kept *= 1000.0
+        return colour, kept.astype(np.uint16), seen
 
 
-def draw_object(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float) -> None:
+def draw_object(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float
+                ) -> tuple[int, int, int, int]:
     """Draw a disc, bird or quadrotor of half-span ``r`` px at (u, v) into ``mask`` (255 =
     covered), each pixel's value its covered fraction: drawn supersampled in a patch around it
     and averaged down, so the image's size and position change continuously with the range
-    (OpenCV's anti-aliased discs alone still step: r 2.4 -> 2.5 px covered 21.6 -> 30.3 px²)."""
+    (OpenCV's anti-aliased discs alone still step: r 2.4 -> 2.5 px covered 21.6 -> 30.3 px²).
+    Returns the patch (x0, y0, x1, y1, px; empty when off the image): nothing outside it is
+    touched."""
     h, w = mask.shape
     g = r + 3.0
     x0, y0 = max(0, int(math.floor(u - g))), max(0, int(math.floor(v - g)))
     x1, y1 = min(w, int(math.ceil(u + g)) + 1), min(h, int(math.ceil(v + g)) + 1)
     if x1 <= x0 or y1 <= y0:
-        return
+        return x0, y0, x0, y0
     side = max(x1 - x0, y1 - y0)
     k = 8 if side <= 48 else 4 if side <= 160 else 1  # a large object's pixel steps are small
     sub = np.zeros(((y1 - y0) * k, (x1 - x0) * k), np.uint8)
@@ -279,6 +290,7 @@ def draw_object(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats
         _silhouette(sub, kind, su, sv, r * k, beats)
     patch = sub if k == 1 else cv2.resize(sub, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
     np.maximum(mask[y0:y1, x0:x1], patch, out=mask[y0:y1, x0:x1])
+    return x0, y0, x1, y1
 
 
 def _silhouette(mask: np.ndarray, kind: str, u: float, v: float, r: float, beats: float) -> None:
