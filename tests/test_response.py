@@ -279,3 +279,37 @@ def test_where_the_images_passage_contradicts_the_depth_tracks_the_depth_track_d
     (_, passage, std), = near.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
     assert math.hypot(passage[0] - 0.18, passage[1] + 0.53) < 0.05 and std == pytest.approx(0.1)
     assert dm.assess(near) is not None
+
+
+def test_a_young_depth_tracks_time_left_is_not_long_for_a_fast_object() -> None:
+    """A bird 9 m off closing at 11 m/s and crossing at 4 m/s, measured with the D435i's depth
+    noise (sigma 0.0036 z^2: 0.29 m at 9 m) for 8 frames (0.27 s): its depth track's time to
+    the camera plane is within 10 % of the truth at the median of 40 noise draws, and within
+    25 % in 90 % of them. A velocity prior held near rest reads the closing speed short and the
+    time left long (1.5 m/s per axis: 31 % long at the median), and an evasion started from it
+    starts late."""
+    from app.decision.policy import _Track3D
+
+    p0, v = np.array([-3.0, 0.4, 9.0]), np.array([4.0, 0.0, -11.0])
+    n = 8
+    truth = (p0[2] + v[2] * n / 30.0) / -v[2]
+    ratios = []
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+
+        def measured(t: float) -> tuple[float, float, float]:
+            p = p0 + v * t
+            sz = max(CFG.kalman_measurement_std_m, CFG.depth_rms_per_m2 * p[2] ** 2)
+            return (float(p[0] + rng.normal(0, 0.05)), float(p[1] + rng.normal(0, 0.05)),
+                    float(p[2] + rng.normal(0, sz)))
+
+        track = _Track3D(measured(0.0), 0.0, CFG)
+        for k in range(1, n + 1):
+            track.advance(k / 30.0)
+            track.update(measured(k / 30.0), k / 30.0)
+        ttc = track.state(1, n / 30.0).ttc_s
+        assert ttc is not None  # closing
+        ratios.append(ttc / truth)
+    off = np.abs(np.array(ratios) - 1.0)
+    assert float(np.median(off)) < 0.10
+    assert float(np.mean(off < 0.25)) >= 0.9
