@@ -98,6 +98,13 @@ class DetectionConfig:
     median_ksize: int = param(3, "median filter aperture, px", ge=1, le=255, odd=True)
     dilate_ksize: int = param(5, "dilation kernel side, px (1 = none)", ge=1, odd=True)
     threshold: int = param(16, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
+    chroma_gain: float = param(
+        0.0,
+        "also difference the colour's chroma (YCrCb's Cr and Cb, half resolution), weighted by "
+        "this against the grey difference, so that an object as bright as its background but of "
+        "another colour is seen (0 = grey only)",
+        ge=0, le=8.0,
+    )
     max_mask_frac: float = param(
         0.15,
         "a mask covering more of the frame than this means a bad warp: the frame is skipped (0-1)",

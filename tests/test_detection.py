@@ -440,3 +440,63 @@ def test_in_forward_flight_the_slow_difference_registers_the_grounds_parallax_ti
             u, v = int(t[0]), int(t[1])
             rim_seen += bool(marked[max(0, v - 12):v + 13, max(0, u - 12):u + 13].any())
     assert rim_seen >= 10
+
+
+def _colour_ground(seed: int) -> np.ndarray:
+    """Green-brown textured ground (BGR): luma texture and a milder chroma texture."""
+    y = textured(seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    tint = cv2.resize(rng.normal(0, 1, (30, 40)), (640, 480), interpolation=cv2.INTER_CUBIC)
+    ycrcb = np.dstack([y, np.clip(115 + 6 * tint, 0, 255), np.clip(110 - 4 * tint, 0, 255)]).astype(np.uint8)
+    return cv2.cvtColor(ycrcb, cv2.COLOR_YCrCb2BGR)
+
+
+def _isoluminant_disc(img: np.ndarray, centre: tuple[int, int], radius: int) -> np.ndarray:
+    """``img`` with a disc as bright as what it covers, pixel by pixel, but reddish-brown."""
+    ycrcb = cv2.cvtColor(img, cv2.COLOR_BGR2YCrCb)
+    disc = np.zeros(img.shape[:2], np.uint8)
+    cv2.circle(disc, centre, radius, 255, -1)
+    ycrcb[disc > 0, 1] = 150
+    ycrcb[disc > 0, 2] = 100
+    return cv2.cvtColor(ycrcb, cv2.COLOR_YCrCb2BGR)
+
+
+@pytest.mark.parametrize("gain", [0.0, 1.0])
+def test_an_object_as_bright_as_the_ground_is_seen_only_in_colour(gain: float) -> None:
+    base = _colour_ground(seed=4)
+    det = MotionDetector(DetectionConfig(chroma_gain=gain))
+    masks = []
+    for k in range(5):
+        img = _isoluminant_disc(_shift(base, _camera(k)), (300 + 6 * k, 200 + 3 * k), 10)
+        masks.append(det.push(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), t_s=k / 30, colour=img).mask)
+    mask = masks[-1]
+    assert mask is not None
+    cx, cy = 300 + 6 * 3, 200 + 3 * 3
+    near = int((mask[cy - 25:cy + 26, cx - 25:cx + 26] > 0).sum())
+    far = mask.copy()
+    cv2.circle(far, (cx, cy), 40, 0, -1)
+    assert (far > 0).mean() < 0.002  # the ground's colour texture is registered away too
+    if gain == 0:
+        assert near < 30  # grey only: the disc hardly differs from the ground it covers
+    else:
+        ys, xs = np.nonzero(mask[cy - 25:cy + 26, cx - 25:cx + 26])
+        assert len(xs) > 150  # the disc's 314 px, by its colour
+        assert abs(xs.mean() - 25) < 3 and abs(ys.mean() - 25) < 3
+
+
+def test_a_grey_frame_or_none_leaves_the_chroma_difference_out() -> None:
+    base = textured(seed=2)
+    with_gain, without = MotionDetector(DetectionConfig(chroma_gain=2.0)), MotionDetector(DetectionConfig())
+    for k in range(4):
+        img = _shift(base, _camera(k))
+        cv2.circle(img, (300 + 6 * k, 200 + 3 * k), 9, 20, -1)
+        a = with_gain.push(img, t_s=k / 30, colour=img if k % 2 else None).mask
+        b = without.push(img, t_s=k / 30).mask
+    assert a is not None and b is not None and np.array_equal(a, b)
+
+
+def test_a_colour_frame_of_another_size_is_a_clear_error() -> None:
+    det = MotionDetector(DetectionConfig(chroma_gain=1.0))
+    img = textured(seed=3)
+    with pytest.raises(ValueError, match="colour frame 320x240"):
+        det.push(img, colour=np.zeros((240, 320, 3), np.uint8))

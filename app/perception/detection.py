@@ -133,6 +133,10 @@ class MotionDetector:
         # the parallax registration's pixel grid and tile centres (half resolution), once
         self._tile_grid: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._frames = 0  # frames pushed (the clock when no capture time is given)
+        # the chroma difference (chroma_gain > 0, colour frames): frame t's YCrCb at half
+        # resolution, and |C_t - W(C_{t-1})| (the larger over Cr and Cb) in its pixels
+        self._chroma_cur: np.ndarray | None = None
+        self._chroma_diff_cur: np.ndarray | None = None
         self._clear_points()
         self._clear_shifts()
         # no motion to go on (start, or the last frame failed): the next flow starts from the
@@ -195,14 +199,15 @@ class MotionDetector:
     # ------------------------------------------------------------------ main step
 
     def push(self, gray: np.ndarray, exclude: list[Box] | tuple[Box, ...] = (),
-             t_s: float | None = None) -> DetectionResult:
+             t_s: float | None = None, colour: np.ndarray | None = None) -> DetectionResult:
         """Add frame t+1; return the motion mask of frame t.
 
         ``exclude`` holds boxes of tracked objects in frame t: border windows that
         overlap them do not vote on the homography. ``t_s`` is frame t+1's capture time
         (s, any clock): with it, LK's start from the last flow is scaled by how much longer
         or shorter this frame interval is than the last one (frames skipped by a busy
-        perception thread double the motion between the frames it sees).
+        perception thread double the motion between the frames it sees). ``colour`` is the
+        same frame in 8-bit BGR: with ``chroma_gain`` > 0 its chroma is differenced too.
         """
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise ValueError(f"expected an 8-bit grey image, got {gray.dtype} {gray.shape}")
@@ -217,13 +222,16 @@ class MotionDetector:
         timings: dict[str, float] = {}
 
         hist = _grey_histogram(gray)
+        chroma = _half_ycrcb(colour, gray.shape) if self.cfg.chroma_gain > 0 else None
         if self._cur is None or self._hist_cur is None or self._mosaic_cur is None:
             self._start(gray, hist, t_s)
+            self._chroma_cur = chroma
             return DetectionResult(None, "warmup", None, 0, 0, timings)
         if cv2.compareHist(self._hist_cur, hist, cv2.HISTCMP_CORREL) < self.cfg.scene_cut_correlation:
             log.info("scene_cut", "scene cut detected: detector reset")
             self.reset()
             self._start(gray, hist, t_s)
+            self._chroma_cur = chroma
             return DetectionResult(None, "scene_cut", None, 0, 0, timings)
 
         excluded = self._excluded_windows(exclude)
@@ -240,7 +248,7 @@ class MotionDetector:
         t1 = time.perf_counter()
         timings["flow_ms"] = (t1 - t0) * 1e3
 
-        mask, status = self._difference(gray, h_cur_next)
+        mask, status = self._difference(gray, h_cur_next, chroma)
         self._remember(h_cur_next, t_s)
         if self.featureless and mask is not None:
             status = "featureless"
@@ -253,6 +261,7 @@ class MotionDetector:
         # Shift: t+1 becomes the current frame; H_{t,t+1} becomes next step's H_{t-1,t}.
         self._has_prev = True
         self._cur, self._hist_cur, self._mosaic_cur = gray, hist, mosaic_next
+        self._chroma_cur = chroma
         self._t_prev, self._t_cur = self._t_cur, t_s
         self._set_slow_cur(gray, t_s)
         self._h_prev_cur = h_cur_next
@@ -276,6 +285,32 @@ class MotionDetector:
             self._slow.append((self._t_slow_cur, self._small_cur, h_cur_next.copy()))
             while self._slow and self._t_slow_cur - self._slow[0][0] > 2 * base + 0.05:
                 self._slow.popleft()
+
+    def _chroma_difference(self, chroma_next: np.ndarray | None,
+                           h_cur_next: np.ndarray | None) -> np.ndarray | None:
+        """The three-frame difference of the chroma (the larger of |dCr| and |dCb|), as the
+        grey one is made but at half resolution, times ``chroma_gain``, in frame t's full
+        pixels; None without colour, a homography or a predecessor. The next step's "previous"
+        half is kept either way."""
+        cur, prev_diff = self._chroma_cur, self._chroma_diff_cur
+        self._chroma_diff_cur = None
+        if cur is None or chroma_next is None or h_cur_next is None:
+            return None
+        hh = _HALF @ h_cur_next @ _DOUBLE
+        d = _compensated_diff(cur, chroma_next, hh)
+        self._chroma_diff_cur = cv2.max(cv2.extractChannel(d, 1), cv2.extractChannel(d, 2))
+        if prev_diff is None:
+            return None
+        next_diff = cv2.warpPerspective(
+            self._chroma_diff_cur, hh, (cur.shape[1], cur.shape[0]),
+            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0)
+        if self.cfg.combine == "min":
+            merged = cv2.min(prev_diff, next_diff)
+        else:
+            merged = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0)
+        merged = cv2.convertScaleAbs(merged, alpha=self.cfg.chroma_gain)
+        assert self._shape is not None
+        return cv2.pyrUp(merged, dstsize=(self._shape[1], self._shape[0]))
 
     def _slow_difference(self) -> np.ndarray | None:
         """Frame t against the registered frames ``slow_baseline_s`` and twice that before it,
@@ -617,7 +652,8 @@ class MotionDetector:
             return None
         return mask
 
-    def _difference(self, nxt: np.ndarray, h_cur_next: np.ndarray | None) -> tuple[np.ndarray | None, str]:
+    def _difference(self, nxt: np.ndarray, h_cur_next: np.ndarray | None,
+                    chroma_next: np.ndarray | None = None) -> tuple[np.ndarray | None, str]:
         """Motion mask of frame t from frames t-1, t, t+1 (Alg. 1 lines 11–12).
 
         Each frame is warped once: |I_{t+1} - W(I_t)| is computed in t+1's pixels, kept as
@@ -651,6 +687,9 @@ class MotionDetector:
             merged, status = cv2.min(prev_diff, next_diff), "ok"
         else:
             merged, status = cv2.addWeighted(prev_diff, 0.5, next_diff, 0.5, 0.0), "ok"
+        chroma = self._chroma_difference(chroma_next, h_cur_next)
+        if chroma is not None:
+            merged = cv2.max(merged, chroma)
         slow = self._slow_difference()
         mask = self._threshold(cv2.max(merged, slow) if slow is not None else merged)
         if mask is None and slow is not None:
@@ -666,6 +705,22 @@ class MotionDetector:
 _HALF = np.diag([0.5, 0.5, 1.0])  # full-resolution px -> pyrDown's px (pixel centres 2i -> i)
 _DOUBLE = np.diag([2.0, 2.0, 1.0])
 _KERNEL3 = cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))
+
+
+def _half_ycrcb(colour: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray | None:
+    """``colour`` (8-bit BGR of the grey frame's size) at half resolution in YCrCb; None for
+    no colour or a grey frame. Area averaging is 6x cheaper than pyrDown on three channels;
+    its pixel centres sit a quarter of a half-resolution pixel off ``_HALF``'s, which the
+    median and dilation that follow do not resolve. A 3-channel warp at this size costs less
+    than two single-channel ones (OpenCV's 2-channel warp is slower than either)."""
+    if colour is None or colour.ndim != 3 or colour.shape[2] != 3:
+        return None
+    if colour.shape[:2] != shape:
+        raise ValueError(f"colour frame {colour.shape[1]}x{colour.shape[0]} is not the grey "
+                         f"frame's {shape[1]}x{shape[0]}")
+    h, w = shape
+    small = cv2.resize(colour, ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(small, cv2.COLOR_BGR2YCrCb)
 
 
 def _compensated_diff(src: np.ndarray, dst: np.ndarray, h: np.ndarray) -> np.ndarray:

@@ -56,7 +56,7 @@ class Perception:
         t0 = time.perf_counter()
         grey = to_grey(frame.color)
         exclude = self.tracker.confirmed_boxes()
-        det = self.detector.push(grey, exclude, frame.t_s)
+        det = self.detector.push(grey, exclude, frame.t_s, frame.color)
         t1 = time.perf_counter()
         current, self._pending = self._pending, frame
         current_grey, self._pending_grey = self._pending_grey, grey
