@@ -150,6 +150,10 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--realtime-object-free", action="store_true", help="fly the object-free minutes "
                    "in real time through the full loop (default: faster than real time, re-flying "
                    "in real time any flight that would have commanded something)")
+    m.add_argument("--open-loop", action="store_true", help="campaign sets flown open loop instead: "
+                   "each encounter by its script, faster than real time, stopped at the first command "
+                   "and scored from the truth with the response model (a development screen, not the "
+                   "closed loop; writes openloop.csv and openloop.md)")
     m.add_argument("--world", metavar="MODULE:FACTORY", default="", help="render encounters with "
                    "another world: FACTORY(seed, lens) returns an object with camera() and render() "
                    "(docs/commands.md, 'Your own world'); default: the built-in world")
@@ -454,8 +458,11 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
         world_for(cfg, Encounter(seed=args.seed, world=args.world))  # fails here, not in every worker
     t0 = time.monotonic()
-    if (args.campaign is None and not args.object_free and not args.wide_passes and not args.crossing
-            and not args.resume):
+    sets_given = args.campaign is not None or args.object_free or args.wide_passes or args.crossing
+    if args.open_loop and (not sets_given or args.resume or args.ray):
+        raise UsageError("simulate --open-loop: give the sets to fly (--campaign, --wide-passes, "
+                         "--crossing, --object-free); it neither resumes nor runs on Ray")
+    if not sets_given and not args.resume:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
                         world=args.world, xy_vel_p_acc=args.vel_gain)
@@ -478,6 +485,9 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     wide = [replace(e, **flown) for e in wide_passes(args.wide_passes, args.seed)]
     cross = [replace(e, **flown) for e in crossing_set(args.crossing, args.seed)]
     free = [replace(e, **flown) for e in object_free(args.object_free, args.seed)] if args.object_free else []
+    if args.open_loop:
+        return _open_loop(cfg, [("main", encounters), ("wide", wide), ("crossing", cross), ("free", free)],
+                          workers, out)
     fast = not args.realtime_object_free
     plan = {"seed": args.seed, "campaign": args.campaign or 0, "wide_passes": args.wide_passes,
             "crossing": args.crossing,
@@ -507,6 +517,23 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
                           crossing=results[n + k:n + k + c])
     print(report.read_text())
     print(f"wrote {report}, {out / 'encounters.csv'} and the plots in {out}")
+    return 0
+
+
+def _open_loop(cfg: Config, sets: list[tuple[str, list[Encounter]]], workers: int, out: Path) -> int:
+    """``simulate --open-loop``: the sets flown by their scripts (app.sim.openloop)."""
+    from tqdm import tqdm
+
+    from app.sim.openloop import run_open_loop, write_open_loop
+
+    bar = tqdm(total=sum(len(g) for _, g in sets), unit="enc", desc="open loop", file=sys.stderr,
+               mininterval=1.0)
+    try:
+        results = run_open_loop(cfg, sets, workers, lambda _r: bar.update(1))
+    finally:
+        bar.close()
+    print(write_open_loop(out, results), end="")
+    print(f"wrote {out / 'openloop.csv'} and {out / 'openloop.md'}")
     return 0
 
 
