@@ -48,6 +48,7 @@ from app.sim.simulate import (
     Encounter,
     SimulatedCamera,
     _direction_vs_truth,
+    on_object,
     world_for,
 )
 
@@ -172,18 +173,15 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
 
 def _mark_tracked(res: OpenLoopResult, camera: SimulatedCamera, index: int, tracks: list[TrackReport],
                   before_cpa_s: float) -> None:
-    """Note when a track first lay on the object, and when one reported did (the gate of
-    :func:`app.sim.simulate.analyse`: its box's centre within max(20 px, 2 radii))."""
+    """Note when a track first lay on the object, and when one reported did (the campaign's
+    :func:`app.sim.simulate.on_object`)."""
     truth = camera.truth[index - 1] if 0 < index <= len(camera.truth) else None
     if truth is None or truth.pixel is None:
         return
-    u, v, r, _z = truth.pixel
-    gate = max(20.0, 2.0 * r)
     for tr in tracks:
         if tr.cluster is None:
             continue
-        x, y, w, h = tr.cluster.box
-        if math.hypot(x + w / 2 - u, y + h / 2 - v) <= gate:
+        if on_object(tr.cluster.box, truth.pixel):
             if res.tracked_before_cpa_s is None:
                 res.tracked_before_cpa_s = round(before_cpa_s, 3)
             if tr.reported:

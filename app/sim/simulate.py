@@ -321,9 +321,7 @@ def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
         tr = truth.get(int(line["frame"]))
         if tr is None or tr.pixel is None:
             continue
-        u, v, r, _z = tr.pixel
-        gate = max(20.0, 2.0 * r)
-        if any(math.hypot(x + w / 2 - u, y + h / 2 - v) <= gate
+        if any(on_object((x, y, w, h), tr.pixel)
                for _id, x, y, w, h, *_confidence_reported in line["tracks"]):
             res.detected = True
             d = distance(tr.frame)
@@ -340,6 +338,15 @@ def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
         res.evade_range_m = None if d is None else round(d, 2)
         res.evade_before_cpa_s = round(t_cpa - (rec_t0 + float(first["t_capture"])), 3)
     return res
+
+
+def on_object(box: tuple[float, float, float, float], pixel: tuple[float, float, float, float]) -> bool:
+    """Does a track's box (x, y, w, h px) lie on the object the truth draws at ``pixel`` (u, v,
+    radius px, z m)? Its centre within two radii, and never less than 20 px (the mask's ghosts
+    and merges move a small object's box by that much)."""
+    x, y, w, h = box
+    u, v, r, _z = pixel
+    return math.hypot(x + w / 2 - u, y + h / 2 - v) <= max(20.0, 2.0 * r)
 
 
 def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float], window_s: float = 0.3
