@@ -29,7 +29,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -79,10 +79,9 @@ class OpenLoopResult:
     cleared: bool = False
     reason: str = ""
     wall_s: float = 0.0
-    extra: dict[str, object] = field(default_factory=dict)
 
     def row(self) -> dict[str, object]:
-        out = {k: v for k, v in asdict(self).items() if k not in ("encounter", "extra")}
+        out = {k: v for k, v in asdict(self).items() if k != "encounter"}
         out.update({f"enc_{k}": v for k, v in asdict(self.encounter).items()})
         return out
 
@@ -124,6 +123,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
     first_2d: dict[int, float] = {}
     first_3d: dict[int, float] = {}
     t0 = 0.0
+    t_cmd_s: float | None = None  # when the first command came, s after the first frame
     for frame in camera:
         t0 = camera.t_start or 0.0  # set as the first frame is drawn; frames are stamped from it
         result = perception.push(frame)
@@ -154,15 +154,15 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
             stds = [s for _, _, s in obj.passages(cfg.decision.object_diameter_min_m,
                                                   cfg.decision.object_diameter_max_m)]
             res.passage_std_m = round(min(stds), 3) if stds else None
-        rel = _relative(enc, np.array([t_cmd]))[0]
-        start, vel = enc.object_path()
-        closing = -(vel[0] - enc.own_speed_mps)
-        res.true_tau_s = round(rel[0] / closing, 3) if closing > 0 else None
-        if enc.with_object and 20.0 <= abs(enc.approach_deg) <= 50.0 and command.action == EVADE:
-            res.towards_passage, _ = _direction_vs_truth(camera, result.frame.index,
-                                                         [0.0, command.right_mps, command.down_mps])
+        t_cmd_s = t_cmd
+        if enc.with_object:
+            rel = _relative(enc, np.array([t_cmd]))[0]
+            closing = enc.own_speed_mps - enc.object_path()[1][0]  # north: the camera's Z
+            res.true_tau_s = round(rel[0] / closing, 3) if closing > 0 else None
+            if 20.0 <= abs(enc.approach_deg) <= 50.0 and command.action == EVADE:
+                res.towards_passage, _ = _direction_vs_truth(camera, result.frame.index,
+                                                             [0.0, command.right_mps, command.down_mps])
         break
-    t_cmd_s = None if not res.commanded else enc.t_cpa_s - (res.command_before_cpa_s or 0.0)
     if enc.with_object:
         res.separation_m = round(separation_after(enc, t_cmd_s, res.right_mps, res.down_mps,
                                                   decider.response), 3)
@@ -269,7 +269,7 @@ def write_open_loop(out: Path, results: list[OpenLoopResult], in_view_s: float =
     if free:
         minutes = sum(r.encounter.t_cpa_s for r in free) / 60.0
         lines.append(f"- object-free: {sum(r.commanded for r in free)} of {len(free)} flights commanded "
-                     f"({minutes:.0f} min; unconfirmed, the first command only)")
+                     f"({minutes:g} min; unconfirmed, the first command only)")
     text = "\n".join(lines) + "\n"
     (out / "openloop.md").write_text(text)
     return text
