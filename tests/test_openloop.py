@@ -58,3 +58,14 @@ def test_a_head_on_ball_is_commanded_in_time_and_cleared_open_loop(tmp_path: Pat
     text = write_open_loop(tmp_path, [res])
     assert "threats cleared (main + crossing): 1/1" in text
     assert (tmp_path / "openloop.csv").read_text().count("\n") == 2
+
+
+def test_the_open_loop_without_sets_or_with_resume_is_refused_by_name(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from app.cli import main
+
+    assert main(["simulate", "--open-loop", "--out", str(tmp_path / "ol")]) == 2
+    assert "--open-loop: give the sets to fly" in capsys.readouterr().err
+    assert main(["simulate", "--open-loop", "--campaign", "2", "--resume", str(tmp_path)]) == 2
+    assert "neither resumes nor runs on Ray" in capsys.readouterr().err
+    assert not (tmp_path / "ol").exists()  # nothing written
