@@ -57,7 +57,7 @@ from app.sim.simulate import (
 class OpenLoopResult:
     encounter: Encounter
     threat: bool
-    set: str = "main"  # main | wide | crossing
+    set: str = "main"  # main | wide | crossing | free
     in_view_s: float = 0.0
     # first frame a confirmed track lay on the object (the campaign's gate), and one that
     # perception's confidence reported, s before the closest approach
@@ -86,19 +86,12 @@ class OpenLoopResult:
         return out
 
 
-def _relative(enc: Encounter, t: np.ndarray) -> np.ndarray:
-    """The object relative to the vehicle flying its script, NED m, at ``t`` s from the start."""
-    start, vel = enc.object_path()
-    vehicle = np.stack([enc.own_speed_mps * t, np.zeros_like(t), np.full_like(t, -enc.altitude_m)], 1)
-    return start + vel * t[:, None] - vehicle
-
-
 def separation_after(enc: Encounter, t_cmd: float | None, right: float, down: float,
                      response: ResponseModel) -> float:
     """The closest approach (m) when the vehicle, from ``t_cmd`` s after the start (None:
     never), moves along (right, down) as ``response`` says; forward as scripted."""
     t = np.arange(0.0, enc.t_cpa_s + enc.after_s, 0.005)
-    rel = _relative(enc, t)
+    rel = enc.relative_path(t)
     speed = math.hypot(right, down)
     if t_cmd is not None and speed > 0:
         scale = speed / response.speed_mps
@@ -156,7 +149,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
             res.passage_std_m = round(min(stds), 3) if stds else None
         t_cmd_s = t_cmd
         if enc.with_object:
-            rel = _relative(enc, np.array([t_cmd]))[0]
+            rel = enc.relative_path(np.array([t_cmd]))[0]
             closing = enc.own_speed_mps - enc.object_path()[1][0]  # north: the camera's Z
             res.true_tau_s = round(rel[0] / closing, 3) if closing > 0 else None
             if 20.0 <= abs(enc.approach_deg) <= 50.0 and command.action == EVADE:

@@ -79,6 +79,13 @@ class Encounter:
         start = cpa_vehicle + offset - vel * self.t_cpa_s
         return start, vel
 
+    def relative_path(self, t: np.ndarray) -> np.ndarray:
+        """The object relative to the vehicle flying its script (hovering, or north at its
+        own speed), had nobody moved, at ``t`` s from the start: (len(t), 3) NED m."""
+        start, vel = self.object_path()
+        vehicle = np.stack([self.own_speed_mps * t, np.zeros_like(t), np.full_like(t, -self.altitude_m)], 1)
+        return start + vel * t[:, None] - vehicle
+
     def in_view_s(self, intr: Intrinsics) -> float:
         """How long, before the closest approach, the object's centre lies inside the lens's
         image on the course it would fly had nobody moved (the vehicle hovering or flying its
@@ -86,11 +93,9 @@ class Encounter:
         a collision course from 40° off the nose stays outside a 55° lens to the end."""
         if not self.with_object:
             return 0.0
-        start, vel = self.object_path()
         dt = 1.0 / self.fps
         t = np.arange(0.0, self.t_cpa_s, dt)
-        vehicle = np.stack([self.own_speed_mps * t, np.zeros_like(t), np.full_like(t, -self.altitude_m)], 1)
-        rel = start + vel * t[:, None] - vehicle  # NED; camera: X = east, Y = down, Z = north
+        rel = self.relative_path(t)  # NED; camera: X = east, Y = down, Z = north
         z = rel[:, 0]
         ok = z > 0.3
         u = intr.fx * rel[:, 1] / np.where(ok, z, 1.0) + intr.ppx
