@@ -43,6 +43,11 @@ class FlightLinkError(Exception):
     """The autopilot cannot be reached or refused what it must do."""
 
 
+class PortInUseError(FlightLinkError):
+    """The connection's local port is taken by another program (another midair,
+    QGroundControl, mavlink-router): MAVSDK could not bind it."""
+
+
 @dataclass
 class _Telemetry:
     armed: bool = False
@@ -116,6 +121,10 @@ class Px4Link:
             await self._mavsdk.add_any_connection(self.url)
         except Exception as exc:  # the binding raises its own types for a bad URL
             await self.close()
+            if "BIND_ERROR" in str(exc):
+                raise PortInUseError(f"connection {self.url!r}: its port is in use by another "
+                                     f"program (another midair, QGroundControl, a router?): "
+                                     f"{exc}") from None
             raise FlightLinkError(f"connection {self.url!r} rejected: {exc}") from None
         system = await self._mavsdk.first_autopilot(timeout_s)
         if system is None:

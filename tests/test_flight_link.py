@@ -19,7 +19,7 @@ from app.decision.policy import EVADE, NONE, STOP, Command  # noqa: E402
 from app.flight.engagement import Decision, Engagement, VehicleState  # noqa: E402
 from app.flight.loop import LoopStats, control_loop  # noqa: E402
 from app.sim.px4 import SimPx4, SimState  # noqa: E402
-from hardware.px4 import FlightLinkError, Px4Link  # noqa: E402
+from hardware.px4 import FlightLinkError, PortInUseError, Px4Link  # noqa: E402
 from tests.conftest import free_udp_port, vehicle, wait_for  # noqa: E402
 
 
@@ -361,6 +361,19 @@ async def test_malformed_connection_url_is_a_clear_error() -> None:
     link = Px4Link("udpin://:14540")  # MAVSDK wants an address: udpin://0.0.0.0:14540
     with pytest.raises(FlightLinkError, match="udpin://:14540"):
         await link.connect(timeout_s=1.0)
+
+
+@pytest.mark.asyncio
+@pytest.mark.timeout(30)
+async def test_a_port_another_program_holds_is_named_as_in_use() -> None:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
+        holder.bind(("0.0.0.0", 0))
+        port = holder.getsockname()[1]
+        link = Px4Link(f"udpin://0.0.0.0:{port}")
+        with pytest.raises(PortInUseError, match=f"udpin://0.0.0.0:{port}.*in use"):
+            await link.connect(timeout_s=1.0)
 
 
 @pytest.mark.asyncio

@@ -152,6 +152,34 @@ def test_an_empty_sky_gives_no_evasion() -> None:
 
 
 @pytest.mark.timeout(120)
+def test_a_stand_in_port_taken_before_mavsdk_binds_it_is_retried_with_another(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # the port is picked free and released before MAVSDK binds it; with two workers another
+    # socket took it once in CI (BIND_ERROR): the encounter must fly on a new port
+    import socket
+
+    import app.sim.px4 as px4
+
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    holder.bind(("0.0.0.0", 0))
+    picks = [holder.getsockname()[1]]
+    real = px4.free_udp_port
+
+    def pick() -> int:
+        port = picks[0] if len(picks) == 1 else real()
+        picks.append(port)
+        return port
+
+    monkeypatch.setattr(px4, "free_udp_port", pick)
+    try:
+        r = run_encounter(TTC, Encounter(seed=9, with_object=False, t_cpa_s=3.0, after_s=0.0))
+    finally:
+        holder.close()
+    assert picks[1] == picks[0] and picks[2] != picks[0]  # the taken one, then a new one
+    assert r.frames >= 80 and r.false_evasions == 0
+
+
+@pytest.mark.timeout(120)
 def test_the_camera_can_follow_the_pose_from_mavlink_telemetry_as_with_px4_sitl() -> None:
     # the path `midair simulate --connection` takes with a PX4 SITL: the pose comes from
     # LOCAL_POSITION_NED and ATTITUDE over MAVLink instead of the stand-in's own state

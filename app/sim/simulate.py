@@ -232,29 +232,46 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     from app.runtime.process import fly
     from app.runtime.record import FlightRecord
     from app.sim.px4 import SimPx4, SimState, free_udp_port
-    from hardware.px4 import Px4Link
+    from hardware.px4 import PortInUseError, Px4Link
 
     wall0 = time.monotonic()
     sim = None
-    if connection is None:
-        state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
-                         cruise_mps=enc.own_speed_mps)
-        state.pos_ned = [0.0, 0.0, -enc.altitude_m]
-        port = free_udp_port()
-        sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc).start()
-        connection = f"udpin://0.0.0.0:{port}"
-    link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
-    camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry else link.pose,
-                             world=world_for(cfg, enc))
-    tmp = None
-    if out_dir is None:
-        tmp = tempfile.TemporaryDirectory(prefix="midair-sim-")
-        out_dir = Path(tmp.name)
-    rec_cfg = replace(cfg.record, dir=str(out_dir / "records"),
-                      frames="color+depth" if save_frames else "none")
-    record = FlightRecord(rec_cfg, cfg, camera.camera).start()
+    link = None
+    # the stand-in's port is picked free, released, then bound by MAVSDK: in between another
+    # worker's socket can take it (seen once in CI with two workers), so a taken port is
+    # retried with a new one; any other failure is not
+    for attempt in range(_BIND_ATTEMPTS):
+        if connection is None or sim is not None:
+            state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
+                             cruise_mps=enc.own_speed_mps)
+            state.pos_ned = [0.0, 0.0, -enc.altitude_m]
+            port = free_udp_port()
+            sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc).start()
+            connection = f"udpin://0.0.0.0:{port}"
+        assert connection is not None
+        link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
+        try:
+            await link.connect(timeout_s=cfg.flight.connect_timeout_s)
+            break
+        except PortInUseError:
+            if sim is None or attempt == _BIND_ATTEMPTS - 1:
+                raise
+            sim.stop()
+        except BaseException:
+            if sim is not None:
+                sim.stop()
+            raise
+    assert link is not None
     try:
-        await link.connect(timeout_s=cfg.flight.connect_timeout_s)
+        camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry
+                                 else link.pose, world=world_for(cfg, enc))
+        tmp = None
+        if out_dir is None:
+            tmp = tempfile.TemporaryDirectory(prefix="midair-sim-")
+            out_dir = Path(tmp.name)
+        rec_cfg = replace(cfg.record, dir=str(out_dir / "records"),
+                          frames="color+depth" if save_frames else "none")
+        record = FlightRecord(rec_cfg, cfg, camera.camera).start()
         await link.wait_flying()
         stats = await fly(cfg, camera, link, install_signals=False, record=record)
     finally:
@@ -271,6 +288,9 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     if tmp is not None:
         tmp.cleanup()
     return result
+
+
+_BIND_ATTEMPTS = 5  # new ports tried for the stand-in when the picked one is taken
 
 
 def world_for(cfg: Config, enc: Encounter) -> Renderer:
