@@ -60,6 +60,29 @@ def test_a_head_on_ball_is_commanded_in_time_and_cleared_open_loop(tmp_path: Pat
     assert (tmp_path / "openloop.csv").read_text().count("\n") == 2
 
 
+def test_how_steadily_the_object_was_reported_before_a_late_command_is_measured() -> None:
+    """With the paper's fixed distances the first command comes under a second before the
+    closest approach, so the share of the frames 2-1 s before it in which a reported track lay
+    on the ball is measured: with every matched track reported (``min_confidence: 0``) the
+    ball is held in most of them; the confidence suppresses it in some (it sits on the
+    horizon, ground texture in its ring). A command earlier than 1 s before leaves it unset."""
+    from dataclasses import replace
+
+    cfg = Config()
+    late = replace(cfg, decision=replace(cfg.decision, trigger="distance"))
+    every = replace(late, perception=replace(late.perception, confidence=replace(
+        late.perception.confidence, min_confidence=0.0)))
+    enc = Encounter(seed=3, object_speed_mps=6.0, approach_deg=10.0)
+    res, all_matched = fly_open_loop(late, enc), fly_open_loop(every, enc)
+    for r in (res, all_matched):
+        assert r.commanded and r.command_before_cpa_s is not None and r.command_before_cpa_s < 1.0
+    assert all_matched.reported_share_2_1 is not None and all_matched.reported_share_2_1 >= 0.7
+    assert res.reported_share_2_1 is not None and 0 < res.reported_share_2_1 < all_matched.reported_share_2_1
+    early = fly_open_loop(cfg, enc)  # the response trigger: commanded before 1 s
+    assert early.command_before_cpa_s is not None and early.command_before_cpa_s > 1.0
+    assert early.reported_share_2_1 is None
+
+
 def test_the_open_loop_without_sets_or_with_resume_is_refused_by_name(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from app.cli import main

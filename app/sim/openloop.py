@@ -63,6 +63,10 @@ class OpenLoopResult:
     # perception's confidence reported, s before the closest approach
     tracked_before_cpa_s: float | None = None
     reported_before_cpa_s: float | None = None
+    # share of the frames 2.0-1.0 s before the closest approach, the object in view, in which
+    # a reported track (matched or coasting) lay on it (None: commanded before, or not in view
+    # then): a first sighting says little when the object is lost again among clutter
+    reported_share_2_1: float | None = None
     commanded: bool = False
     action: str = NONE
     command_before_cpa_s: float | None = None
@@ -115,6 +119,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
     res = OpenLoopResult(enc, enc.threat, set_name, in_view_s=enc.in_view_s(camera.lens.color))
     first_2d: dict[int, float] = {}
     first_3d: dict[int, float] = {}
+    window = [0, 0]  # frames 2.0-1.0 s before the closest approach with the object in view, reported
     t0 = 0.0
     t_cmd_s: float | None = None  # when the first command came, s after the first frame
     for frame in camera:
@@ -125,8 +130,11 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
         t_s = result.frame.t_s
         for tr in result.tracks:
             first_2d.setdefault(tr.track_id, t_s)
-        if res.reported_before_cpa_s is None:
-            _mark_tracked(res, camera, result.frame.index, result.tracks, enc.t_cpa_s - (t_s - t0))
+        before_cpa_s = enc.t_cpa_s - (t_s - t0)
+        on = _mark_tracked(res, camera, result.frame.index, result.tracks, before_cpa_s)
+        if on is not None and 1.0 <= before_cpa_s <= 2.0:
+            window[0] += 1
+            window[1] += on
         command, objects = decider.step(result.tracks, result.frame.depth, t_s, enc.altitude_m)
         for o in objects:
             if o.source != "image":
@@ -156,6 +164,8 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
                 res.towards_passage, _ = _direction_vs_truth(camera, result.frame.index,
                                                              [0.0, command.right_mps, command.down_mps])
         break
+    if window[0] and (t_cmd_s is None or enc.t_cpa_s - t_cmd_s <= 1.0):
+        res.reported_share_2_1 = round(window[1] / window[0], 3)
     if enc.with_object:
         res.separation_m = round(separation_after(enc, t_cmd_s, res.right_mps, res.down_mps,
                                                   decider.response), 3)
@@ -165,21 +175,20 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
 
 
 def _mark_tracked(res: OpenLoopResult, camera: SimulatedCamera, index: int, tracks: list[TrackReport],
-                  before_cpa_s: float) -> None:
-    """Note when a track first lay on the object, and when one reported did (the campaign's
-    :func:`app.sim.simulate.on_object`)."""
+                  before_cpa_s: float) -> bool | None:
+    """Note when a track's cluster first lay on the object, and when a reported one's did (the
+    campaign's :func:`app.sim.simulate.on_object`); return whether a reported track, matched
+    or coasting, lies on it in this frame (None: the object is not in view)."""
     truth = camera.truth[index - 1] if 0 < index <= len(camera.truth) else None
     if truth is None or truth.pixel is None:
-        return
+        return None
     for tr in tracks:
-        if tr.cluster is None:
-            continue
-        if on_object(tr.cluster.box, truth.pixel):
+        if tr.cluster is not None and on_object(tr.cluster.box, truth.pixel):
             if res.tracked_before_cpa_s is None:
                 res.tracked_before_cpa_s = round(before_cpa_s, 3)
-            if tr.reported:
+            if tr.reported and res.reported_before_cpa_s is None:
                 res.reported_before_cpa_s = round(before_cpa_s, 3)
-                return
+    return any(tr.reported and on_object(tr.box, truth.pixel) for tr in tracks)
 
 
 def run_open_loop(cfg: Config, sets: Sequence[tuple[str, Sequence[Encounter]]], workers: int,
@@ -256,8 +265,10 @@ def write_open_loop(out: Path, results: list[OpenLoopResult], in_view_s: float =
 
     lines.append(f"- in-view threats not cleared: {len(lost)}; of them first tracked < 1.0 s before the "
                  f"closest approach (or never) {sum(late(r.tracked_before_cpa_s) for r in lost)}, first "
-                 f"reported < 1.0 s (or never) {sum(late(r.reported_before_cpa_s) for r in lost)}, never "
-                 f"commanded {sum(not r.commanded for r in lost)}, first evasion towards the passage "
+                 f"reported < 1.0 s (or never) {sum(late(r.reported_before_cpa_s) for r in lost)}, "
+                 f"reported in under half the frames 2-1 s before it "
+                 f"{sum(r.reported_share_2_1 is not None and r.reported_share_2_1 < 0.5 for r in lost)}, "
+                 f"never commanded {sum(not r.commanded for r in lost)}, first evasion towards the passage "
                  f"{sum(bool(r.towards_passage) for r in lost)}")
     if free:
         minutes = sum(r.encounter.t_cpa_s for r in free) / 60.0
