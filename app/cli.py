@@ -41,6 +41,12 @@ def _parser() -> argparse.ArgumentParser:
     d.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
     d.add_argument("--frames", type=int, default=240, help="length of the synthetic flight, frames")
     d.add_argument("--seed", type=int, default=1)
+    d.add_argument("--ground-flights", type=int, metavar="N",
+                   help="instead: write N synthetic flights over textured ground with truth (MP4 + "
+                   "frame,id,x,y,w,h, 10 s each, app.sim.groundset) to --out and score perception "
+                   "on them as `midair evaluate` does")
+    d.add_argument("--workers", type=int, default=None, help="with --ground-flights: processes "
+                   "that score the flights (default: one per core)")
     with_config(d)
 
     r = sub.add_parser("replay", help="run perception over a video, image folder or recording folder")
@@ -214,6 +220,8 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     from app.tools.evaluate import read_boxes, score
     from app.tools.replay import ProgressBar, run_replay
 
+    if args.ground_flights is not None:
+        return _demo_ground_flights(args, cfg)
     if args.frames < 10:
         raise UsageError(f"--frames {args.frames}: must be at least 10")
     rec = write_recording(SyntheticScene(frames=args.frames, seed=args.seed), args.out / "recording")
@@ -232,6 +240,22 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
     print(f"against the truth: recall {s['recall']:.2f}, precision {s['precision']:.2f}, "
           f"MOTA {s['mota']:.2f}, IDF1 {s['idf1']:.2f}")
     print(f"annotated video: {args.out / 'annotated.mp4'}  tracks: {args.out / 'tracks.csv'}")
+    return 0
+
+
+def _demo_ground_flights(args: argparse.Namespace, cfg: Config) -> int:
+    from app.sim.groundset import plan_flights, write_dataset
+    from app.tools.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
+
+    plan_flights(args.ground_flights, args.seed)  # bad counts refused before anything is written
+    flights = write_dataset(args.out, args.ground_flights, args.seed,
+                            cfg.capture.color_width, cfg.capture.color_height)
+    print(f"wrote {len(flights)} flights over ground to {args.out} (clips.csv, *.mp4, *.gt.csv)")
+    scores = evaluate_all(find_clips(args.out), cfg, args.workers)
+    sums = totals(scores)
+    print(format_tables(scores, sums))
+    write_reports(args.out, scores, sums)
+    print(f"wrote {args.out / 'evaluation.md'}; score again with: midair evaluate {args.out}")
     return 0
 
 
