@@ -24,6 +24,17 @@ if TYPE_CHECKING:
 log = logging.getLogger("midair")
 
 
+def _seed(text: str) -> int:
+    """A random seed as numpy takes it: a whole number >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value}: must be 0 or more")
+    return value
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="midair",
@@ -40,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="generate a synthetic flight, replay it, write the annotated video")
     d.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
     d.add_argument("--frames", type=int, default=240, help="length of the synthetic flight, frames")
-    d.add_argument("--seed", type=int, default=1)
+    d.add_argument("--seed", type=_seed, default=1, help="random seed, a whole number >= 0")
     d.add_argument("--ground-flights", type=int, metavar="N",
                    help="instead: write N synthetic flights over textured ground with truth (MP4 + "
                    "frame,id,x,y,w,h, 10 s each, app.sim.groundset) to --out and score perception "
@@ -120,7 +131,7 @@ def _parser() -> argparse.ArgumentParser:
     m = sub.add_parser("simulate", help="closed-loop encounters: a rendered world as the camera, the "
                        "flight process, the simulated PX4; one encounter or a campaign")
     m.add_argument("--out", type=Path, default=Path("out/simulate"), help="output folder")
-    m.add_argument("--seed", type=int, default=1)
+    m.add_argument("--seed", type=_seed, default=1, help="random seed, a whole number >= 0")
     m.add_argument("--campaign", type=int, metavar="N", help="run N randomised encounters")
     m.add_argument("--object-free", type=float, default=0.0, metavar="MIN",
                    help="also fly MIN simulated minutes with no object (false evasions per hour)")

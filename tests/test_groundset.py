@@ -67,6 +67,12 @@ def test_demo_writes_and_scores_ground_flights_and_refuses_a_bad_count(
     assert main(["demo", "--ground-flights", "0", "--out", str(tmp_path / "none")]) == 2
     assert "--ground-flights 0: must be at least 1" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+    for command in ("demo", "simulate"):  # numpy's own error was a traceback
+        with pytest.raises(SystemExit) as exit_info:
+            main([command, "--seed", "-1", "--out", str(tmp_path / "none")])
+        assert exit_info.value.code == 2
+        assert "argument --seed: -1: must be 0 or more" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
     out = tmp_path / "ground"
     assert main(["demo", "--ground-flights", "1", "--seed", "4", "--workers", "1", "--out", str(out)]) == 0
     text = capsys.readouterr().out
