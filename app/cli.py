@@ -255,7 +255,7 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _demo_ground_flights(args: argparse.Namespace, cfg: Config) -> int:
-    from app.sim.groundset import plan_flights, write_dataset
+    from app.sim.groundset import approach_shares, plan_flights, write_dataset
     from app.tools.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
 
     plan_flights(args.ground_flights, args.seed)  # bad counts refused before anything is written
@@ -266,6 +266,12 @@ def _demo_ground_flights(args: argparse.Namespace, cfg: Config) -> int:
     sums = totals(scores)
     print(format_tables(scores, sums))
     write_reports(args.out, scores, sums)
+    shares = approach_shares(args.out, cfg, args.workers)
+    seen = [s for s in shares if s.first_reported is not None]
+    after = sum(s.frames_after for s in seen)
+    print(f"objects coming at the vehicle: {len(seen)} of {len(shares)} ever reported; once reported, "
+          f"reported in {sum(s.reported_after for s in seen)} of their {after} frames"
+          + (f" ({sum(s.reported_after for s in seen) / after:.1%})" if after else ""))
     print(f"wrote {args.out / 'evaluation.md'}; score again with: midair evaluate {args.out}")
     return 0
 

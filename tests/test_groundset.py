@@ -78,3 +78,19 @@ def test_demo_writes_and_scores_ground_flights_and_refuses_a_bad_count(
     text = capsys.readouterr().out
     assert "| groundflights | 1 |" in text
     assert (out / "evaluation.md").exists() and (out / "clips.csv").exists()
+    with (out / "objects.csv").open(newline="") as fh:
+        objects = list(csv.DictReader(fh))
+    coming = sum(o["approaching"] == "1" for o in objects)
+    assert coming >= 1 and "objects coming at the vehicle: " in text and f"of {coming} ever reported" in text
+
+
+def test_how_steadily_objects_coming_at_the_vehicle_are_reported_needs_the_objects_index(
+        tmp_path: Path) -> None:
+    from app.config import Config
+    from app.errors import UsageError
+    from app.sim.groundset import ApproachShare, approach_shares
+
+    with pytest.raises(UsageError, match="no objects.csv"):
+        approach_shares(tmp_path, Config())
+    assert ApproachShare("c", 1, 10, 4, 7, 5).share == pytest.approx(5 / 7)
+    assert ApproachShare("c", 1, 10, None, 0, 0).share is None

@@ -18,6 +18,7 @@ import os
 from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -214,7 +215,9 @@ def evaluate_all(clips: list[Clip], cfg: Config, workers: int | None = None) -> 
     workers = workers or os.cpu_count() or 1
     if workers == 1 or len(clips) == 1:
         return [evaluate_clip(c, cfg) for c in clips]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # spawned, not forked: a fork after OpenCV's threads have run in this process can inherit
+    # a held lock (`midair demo --ground-flights` renders before it scores)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
         return list(pool.map(evaluate_clip, clips, [cfg] * len(clips)))
 
 
