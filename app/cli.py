@@ -255,8 +255,15 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
 
 
 def _demo_ground_flights(args: argparse.Namespace, cfg: Config) -> int:
-    from app.sim.groundset import approach_shares, plan_flights, write_dataset
-    from app.tools.evaluate import evaluate_all, find_clips, format_tables, totals, write_reports
+    from app.sim.groundset import plan_flights, write_dataset
+    from app.tools.evaluate import (
+        approach_shares,
+        evaluate_all,
+        find_clips,
+        format_tables,
+        totals,
+        write_reports,
+    )
 
     plan_flights(args.ground_flights, args.seed)  # bad counts refused before anything is written
     flights = write_dataset(args.out, args.ground_flights, args.seed,

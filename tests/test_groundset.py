@@ -88,7 +88,7 @@ def test_how_steadily_objects_coming_at_the_vehicle_are_reported_needs_the_objec
         tmp_path: Path) -> None:
     from app.config import Config
     from app.errors import UsageError
-    from app.sim.groundset import ApproachShare, approach_shares
+    from app.tools.evaluate import ApproachShare, approach_shares
 
     with pytest.raises(UsageError, match="no objects.csv"):
         approach_shares(tmp_path, Config())

@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from app.camera import Intrinsics
-from app.config import Config
 from app.errors import UsageError
 from app.sim.world import Sphere, d435i_color, load_world
 
@@ -194,78 +193,3 @@ def write_dataset(out: Path, n: int, seed: int, width: int = 848, height: int = 
             for j, o in enumerate(f.objects):
                 ow.writerow([f.name, j + 1, o.kind, int(o.approaching), o.diameter_m, o.grey])
     return flights
-
-
-@dataclass(frozen=True)
-class ApproachShare:
-    """How steadily perception reports an object coming at the vehicle once it has reported
-    it (issue 19's target: in >= 95 % of its frames once confirmed)."""
-
-    clip: str
-    object_id: int
-    frames_in_view: int  # labelled frames
-    first_reported: int | None  # frame, None: never
-    frames_after: int  # labelled frames from the first reported one on
-    reported_after: int  # of them, frames with a reported track on it (evaluate's gate)
-
-    @property
-    def share(self) -> float | None:
-        return self.reported_after / self.frames_after if self.frames_after else None
-
-
-def _approach_shares(args: tuple[Path, Path, list[int], Config]) -> list[ApproachShare]:
-    from app.runtime.sources import open_source
-    from app.tools.evaluate import GATE_PX, GATE_SCALE, read_boxes
-    from app.tools.replay import run_replay
-
-    video, gt_path, ids, cfg = args
-    import cv2
-
-    cv2.setNumThreads(1)
-    gt = read_boxes(gt_path)
-    stats = run_replay(open_source(video), cfg, out_dir=None, video=False)
-    hyp: dict[int, list[tuple[float, float]]] = {}
-    for f, _tid, x, y, w, h, _c in stats.track_rows:
-        hyp.setdefault(f, []).append((x + w / 2, y + h / 2))
-    out = []
-    for oid in ids:
-        frames = sorted(f for f, rows in gt.items() if any(r[0] == oid for r in rows))
-        hits = []
-        for f in frames:
-            _i, x, y, w, h = next(r for r in gt[f] if r[0] == oid)
-            gate = max(GATE_PX, GATE_SCALE * max(w, h))
-            hits.append(any(math.hypot(u - x - w / 2, v - y - h / 2) <= gate for u, v in hyp.get(f, [])))
-        first = next((k for k, hit in enumerate(hits) if hit), None)
-        after = hits[first:] if first is not None else []
-        out.append(ApproachShare(video.stem, oid, len(frames), frames[first] if first is not None else None,
-                                 len(after), sum(after)))
-    return out
-
-
-def approach_shares(folder: Path, cfg: Config, workers: int | None = None) -> list[ApproachShare]:
-    """For every object of a ground-flight folder that comes at the vehicle (``objects.csv``):
-    in how many of its labelled frames, from the first one perception reported it in, a
-    reported track lay on it (the evaluation's matching rule)."""
-    import os
-    from concurrent.futures import ProcessPoolExecutor
-    from multiprocessing import get_context
-
-    index = folder / "objects.csv"
-    if not index.is_file():
-        raise UsageError(f"{folder}: no objects.csv (not written by `midair demo --ground-flights`)")
-    ids: dict[str, list[int]] = {}
-    with index.open(newline="") as fh:
-        for row in csv.DictReader(fh):
-            if row["approaching"] == "1":
-                ids.setdefault(row["clip"], []).append(int(row["id"]))
-    jobs = [(folder / f"{clip}.mp4", folder / f"{clip}.gt.csv", oids, cfg)
-            for clip, oids in sorted(ids.items())]
-    workers = workers or os.cpu_count() or 1
-    if workers <= 1 or len(jobs) <= 1:
-        results = [_approach_shares(j) for j in jobs]
-    else:
-        # spawned, not forked: a fork after OpenCV's threads have run can inherit a held lock
-        # (seen: both workers asleep for good after the flights were rendered in the parent)
-        with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
-            results = list(pool.map(_approach_shares, jobs))
-    return [s for r in results for s in r]
