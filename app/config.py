@@ -449,6 +449,9 @@ class DecisionConfig:
         "campaign, seed 11: 1.0 s avoided 55 of 98 threats, 0.4 s 51)", gt=0
     )
     looming_min_samples: int = param(6, "image estimate: fewest matched frames in the window", ge=3)
+    ego_rate_noise_rad_s: float = param(
+        0.02, "static-structure test (app.decision.ego): the camera's rotation rate not taken "
+        "out of the image (attitude jitter), added to a bearing rate's error, rad/s", ge=0)
     looming_max_chi2: float = param(
         9.0, "image estimate: no time to contact when the size's samples stray further than this "
         "from a constant-velocity approach (reduced chi-square at 1 px of noise; real objects in "

@@ -41,6 +41,7 @@ from filterpy.kalman import KalmanFilter
 from app.camera import CameraModel
 from app.config import DecisionConfig, DetectionConfig, avoid_distance_m
 from app.decision.depth import object_depth
+from app.decision.ego import EgoMotion, static_fit
 from app.decision.looming import ImageEstimate, LoomingEstimator
 from app.decision.response import ResponseModel
 from app.perception.tracking import TrackReport
@@ -63,6 +64,9 @@ CLOSING_SIGMAS = 3.0  # image and depth closing speeds further apart than this: 
 # standard errors: the image's is not used
 PASSAGE_CONFLICT_SIGMAS = 2.0
 COURSE_STEPS = 24  # an escape is judged at this many instants along each threat's course
+# An image-only object that moves as static structure (app.decision.ego) is cleared when its
+# passage misses the largest plausible object's clearance by this many standard errors
+STATIC_CLEAR_SIGMAS = 2.0
 # Escapes whose worst-case misses differ by less than this are equal: then the one that
 # passes behind a crossing object (against its lateral motion) is taken, m
 EQUAL_MISS_M = 0.05
@@ -109,6 +113,10 @@ class ObjectState:
     # the image's course in object diameters: position P/D now, relative velocity (dP/dt)/D
     course_sizes: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     closing_std_mps: float | None = None  # the depth track's closing speed's standard error, m/s
+    # seen in the image only and moving as static structure does from the moving camera
+    # (app.decision.ego): where that structure passes the camera's line of flight, m
+    static_miss_m: float | None = None
+    static_miss_std_m: float | None = None
 
     def passages(self, d_min: float, d_max: float
                  ) -> list[tuple[float, tuple[float, float, float], float]]:
@@ -278,7 +286,7 @@ class DecisionMaker:
     # ------------------------------------------------------------------ measurement
 
     def observe(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
-                derotation: np.ndarray | None = None) -> list[ObjectState]:
+                derotation: np.ndarray | None = None, ego: EgoMotion | None = None) -> list[ObjectState]:
         """Update the image estimates and the 3-D tracks from this frame; return every known
         object: measured in depth, or seen in the image only (reported by perception as an
         object, or the one being evaded).
@@ -342,19 +350,27 @@ class DecisionMaker:
                 # in object-free flight)
                 image = image_of(tid)
                 if image is not None:
-                    out.append(dataclasses.replace(self._image_only(tid, image, t_s), reported=t.reported))
+                    o = self._image_only(tid, image, t_s, ego)
+                    out.append(dataclasses.replace(o, reported=t.reported))
         return out
 
-    def _image_only(self, tid: int, e: ImageEstimate, t_s: float) -> ObjectState:
+    def _image_only(self, tid: int, e: ImageEstimate, t_s: float, ego: EgoMotion | None = None
+                    ) -> ObjectState:
         """An object seen in the colour image only: placed at the range of the smallest
-        plausible size (the nearest it can be); never 'fresh' (no measured distance)."""
+        plausible size (the nearest it can be); never 'fresh' (no measured distance). With
+        the camera's velocity, also where it passes if it is static structure."""
         z = e.range_m(self.cfg.object_diameter_min_m)
         xyz = (e.bearing[0] * z, e.bearing[1] * z, z)
         closing = z / e.tau_s if e.tau_s is not None and e.tau_s > 0 else 0.0
+        static = static_fit(e, ego, self.cfg.ego_rate_noise_rad_s) if ego is not None else None
+        if static is not None and not static.fits:
+            static = None
         return ObjectState(tid, xyz, -math.inf, False, closing, None, None, source="image",
                            tau_s=e.tau_s, tau_std_s=e.tau_std_s, miss_sizes=e.miss_sizes,
                            miss_sizes_std=e.miss_sizes_std, seen_s=self._seen.get(tid, -math.inf),
-                           course_sizes=_course(e))
+                           course_sizes=_course(e),
+                           static_miss_m=static.miss_m if static is not None else None,
+                           static_miss_std_m=static.miss_std_m if static is not None else None)
 
     def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
         """The depth track's state with the image's looming: time to the passage by inverse
@@ -500,6 +516,10 @@ class DecisionMaker:
             return None  # no range and perception calls it clutter: the image alone won't do
         if o.tau_std_s is None:
             return None
+        if o.static_miss_m is not None and o.static_miss_std_m is not None:
+            widest = c.vehicle_radius_m + c.object_diameter_max_m / 2 + c.clearance_margin_m
+            if o.static_miss_m - STATIC_CLEAR_SIGMAS * o.static_miss_std_m > widest:
+                return None  # static structure that the vehicle passes wide of
         need_m = -math.inf
         for d, miss, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
             clearance = c.vehicle_radius_m + d / 2 + c.clearance_margin_m
@@ -654,9 +674,9 @@ class DecisionMaker:
         return max(near, key=lambda d: (round(behind(d), 2), -_DIRECTIONS.index(d)))
 
     def step(self, tracks: list[TrackReport], depth: np.ndarray | None, t_s: float,
-             altitude_m: float | None, derotation: np.ndarray | None = None
-             ) -> tuple[Command, list[ObjectState]]:
-        objects = self.observe(tracks, depth, t_s, derotation)
+             altitude_m: float | None, derotation: np.ndarray | None = None,
+             ego: EgoMotion | None = None) -> tuple[Command, list[ObjectState]]:
+        objects = self.observe(tracks, depth, t_s, derotation, ego)
         if self.cfg.trigger == "response":
             return self.decide_response(objects, t_s, altitude_m), objects
         return self.decide(objects, t_s, altitude_m), objects
@@ -758,7 +778,8 @@ def passage_fields(o: ObjectState) -> dict[str, object]:
 
     return {"source": o.source, "tau_s": r(o.tau_s), "tau_std_s": r(o.tau_std_s),
             "miss_sizes": None if o.miss_sizes is None else [r(v, 2) for v in o.miss_sizes],
-            "miss_sizes_std": r(o.miss_sizes_std, 2), "diameter_m": r(o.diameter_m)}
+            "miss_sizes_std": r(o.miss_sizes_std, 2), "diameter_m": r(o.diameter_m),
+            "static_miss_m": r(o.static_miss_m, 2)}
 
 
 def describe_direction(d: tuple[float, float]) -> str:

@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass
 
 from app.config import Config
+from app.decision.ego import EgoMotion, camera_velocity
 from app.decision.policy import NONE, DecisionMaker
 from app.perception.pipeline import Perception
 from app.sim.simulate import Encounter, EncounterResult, SimulatedCamera, _episodes, run_encounter, world_for
@@ -37,6 +38,12 @@ class _Script:
         return (self.speed_mps * t, 0.0, -self.altitude_m), (self.speed_mps, 0.0, 0.0), 0.0
 
 
+def script_ego(enc: Encounter) -> EgoMotion:
+    """The camera's velocity as the autopilot would report it on ``enc``'s scripted flight
+    (north at its own speed, yaw 0, level: the world's camera is level)."""
+    return EgoMotion(camera_velocity((enc.own_speed_mps, 0.0, 0.0), 0.0, 0.0, 0.0))
+
+
 def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResult:
     """One object-free flight (``enc.with_object`` False) faster than real time. If it would
     have commanded anything and ``confirm``, the flight is flown again in real time and that
@@ -49,6 +56,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
                              paced=False)
     perception = Perception(cfg.perception)
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
+    ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     command_frames: list[int] = []
     frames = 0
     for frame in camera:
@@ -57,7 +65,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
         if result is None:
             continue
         command, _objects = decider.step(result.tracks, result.frame.depth, result.frame.t_s,
-                                         enc.altitude_m)
+                                         enc.altitude_m, ego=ego)
         if command.action != NONE:
             command_frames.append(result.frame.index)
     episodes = _episodes(command_frames)

@@ -40,7 +40,7 @@ from app.decision.policy import EVADE, NONE, DecisionMaker
 from app.decision.response import ResponseModel
 from app.perception.pipeline import Perception
 from app.perception.tracking import TrackReport
-from app.sim.fast import _Script
+from app.sim.fast import _Script, script_ego
 from app.sim.results import wilson
 from app.sim.simulate import (
     SAFETY_MARGIN_M,
@@ -116,6 +116,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
                              paced=False)
     perception = Perception(cfg.perception)
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
+    ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     res = OpenLoopResult(enc, enc.threat, set_name, in_view_s=enc.in_view_s(camera.lens.color))
     first_2d: dict[int, float] = {}
     first_3d: dict[int, float] = {}
@@ -135,7 +136,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
         if on is not None and 1.0 <= before_cpa_s <= 2.0:
             window[0] += 1
             window[1] += on
-        command, objects = decider.step(result.tracks, result.frame.depth, t_s, enc.altitude_m)
+        command, objects = decider.step(result.tracks, result.frame.depth, t_s, enc.altitude_m, ego=ego)
         for o in objects:
             if o.source != "image":
                 first_3d.setdefault(o.track_id, t_s)
