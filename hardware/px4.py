@@ -62,6 +62,9 @@ class _Telemetry:
     local_ned: tuple[float, float, float] | None = None  # m from PX4's local origin
     offboard_ack: float = -math.inf  # monotonic time offboard.start() last succeeded
     yaw_rad: float | None = None
+    attitude: tuple[float, float, float] | None = None  # roll, pitch, yaw, rad
+    velocity_t: float = -math.inf  # monotonic time of the newest velocity
+    attitude_t: float = -math.inf  # monotonic time of the newest attitude
 
 
 def _route_core_log() -> None:
@@ -142,13 +145,15 @@ class Px4Link:
             asyncio.create_task(self._watch(self._telemetry.subscribe_flight_mode, self._on_mode)),
             asyncio.create_task(self._watch(self._telemetry.subscribe_position, self._on_position)),
             asyncio.create_task(self._watch(self._telemetry.subscribe_velocity_ned, self._on_velocity)),
+            # the attitude turns the velocity into the camera's axes (the decision's
+            # static-structure test: app.decision.ego)
+            asyncio.create_task(self._watch(self._telemetry.subscribe_attitude_euler, self._on_attitude)),
             asyncio.create_task(self._watch(system.is_connected_state, self._on_connected)),
         ]
         if self.with_pose:
             self._tasks += [
                 asyncio.create_task(self._watch(self._telemetry.subscribe_position_velocity_ned,
                                                 self._on_local)),
-                asyncio.create_task(self._watch(self._telemetry.subscribe_attitude_euler, self._on_attitude)),
             ]
         self._tel.connected = True
 
@@ -212,6 +217,7 @@ class Px4Link:
     def _on_velocity(self, v: object) -> None:
         vel = tuple(float(getattr(v, k, math.nan)) for k in ("north_m_s", "east_m_s", "down_m_s"))
         self._tel.velocity_ned = vel if all(math.isfinite(x) for x in vel) else None  # type: ignore[assignment]
+        self._tel.velocity_t = time.monotonic()
 
     def _on_local(self, pv: object) -> None:
         pos = getattr(pv, "position", None)
@@ -219,8 +225,11 @@ class Px4Link:
         self._tel.local_ned = ned if all(math.isfinite(x) for x in ned) else None  # type: ignore[assignment]
 
     def _on_attitude(self, e: object) -> None:
-        yaw = float(getattr(e, "yaw_deg", math.nan))
-        self._tel.yaw_rad = math.radians(yaw) if math.isfinite(yaw) else None
+        angles = tuple(float(getattr(e, k, math.nan)) for k in ("roll_deg", "pitch_deg", "yaw_deg"))
+        self._tel.yaw_rad = math.radians(angles[2]) if math.isfinite(angles[2]) else None
+        self._tel.attitude = (tuple(math.radians(a) for a in angles)  # type: ignore[assignment]
+                              if all(math.isfinite(a) for a in angles) else None)
+        self._tel.attitude_t = time.monotonic()
 
     def has_pose(self) -> bool:
         return self._tel.local_ned is not None
@@ -241,7 +250,8 @@ class Px4Link:
         t = self._tel
         connected = t.connected and now - t.last_rx <= self.link_timeout_s
         return VehicleState(now, connected, t.armed, t.in_air, t.mode, t.altitude_m, t.mode_t,
-                            t.velocity_ned, t.lat_lon, t.offboard_ack)
+                            t.velocity_ned, t.lat_lon, t.offboard_ack, t.attitude,
+                            min(t.velocity_t, t.attitude_t))
 
     # ------------------------------------------------------------------ commands
 

@@ -13,6 +13,7 @@ from app.camera import CameraModel
 from app.config import DecisionConfig
 from app.decision.ego import EgoMotion, camera_velocity, static_fit
 from app.decision.policy import NONE, DecisionMaker
+from app.flight.engagement import VehicleState
 from app.perception.recognition import Cluster
 from app.perception.tracking import TrackReport
 from tests.test_looming import K, fly
@@ -140,3 +141,16 @@ def test_a_ball_on_a_collision_course_is_evaded_with_or_without_the_cameras_velo
     boxes = _boxes((1.0, 0.5, 18.0), (-1.0 / 18 * 8, -0.5 / 18 * 8, -8.0), 2.2, 0.3)
     for ego in (None, EgoMotion((0.0, 0.0, 3.0), 0.1)):
         assert "evade" in _decide(boxes, ego)
+
+
+def test_the_vehicles_motion_reaches_the_decision_only_when_known_and_young() -> None:
+    v = VehicleState(10.0, True, True, True, "position", 12.0, velocity_ned_mps=(3.0, 0.0, 0.0),
+                     attitude_rad=(0.0, 0.0, 0.0), motion_t_s=9.9)
+    ego = v.ego(0.3)
+    assert ego is not None and ego.velocity_mps == pytest.approx((0.0, 0.0, 3.0))
+    assert VehicleState(10.0, True, True, True, "position", 12.0, velocity_ned_mps=(3.0, 0.0, 0.0),
+                        attitude_rad=(0.0, 0.0, 0.0), motion_t_s=9.5).ego(0.3) is None  # stale
+    assert VehicleState(10.0, True, True, True, "position", 12.0, velocity_ned_mps=(3.0, 0.0, 0.0),
+                        motion_t_s=9.9).ego(0.3) is None  # no attitude: no camera axes
+    assert VehicleState(10.0, True, True, True, "position", 12.0, attitude_rad=(0.0, 0.0, 0.0),
+                        motion_t_s=9.9).ego(0.3) is None  # no velocity

@@ -89,6 +89,8 @@ async def test_evasion_reaches_the_vehicle_in_each_direction_then_hands_back(
     v = link.snapshot()  # and the telemetry says so (yaw 0: east = right)
     assert v.velocity_ned_mps is not None and v.velocity_ned_mps[1] * right > 0
     assert v.lat_lon_deg is not None and abs(v.lat_lon_deg[0] - 47.3977) < 0.01
+    ego = v.ego(0.3)  # and the decision gets it in the camera's axes, from velocity and attitude
+    assert ego is not None and ego.velocity_mps[0] * right > 0 and ego.velocity_mps[1] * down > 0
     expect = ("down" if down > 0 else "up") + "-" + ("right" if right > 0 else "left")
     assert f"midair: evading object 1 {expect}" in sim.status_texts  # the pilot is told
     await slot.feed(Command(NONE), 45)

@@ -46,6 +46,7 @@ import math
 from dataclasses import dataclass
 
 from app.config import FlightConfig
+from app.decision.ego import EgoMotion, camera_velocity
 from app.decision.policy import NONE, STOP, Command, describe_direction
 
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
@@ -72,6 +73,17 @@ class VehicleState:
     # when the autopilot last acknowledged a switch to Offboard (MAVSDK's offboard.start()
     # returned without error); PX4 reports the mode itself only once a second, s
     offboard_ack_t_s: float = -math.inf
+    attitude_rad: tuple[float, float, float] | None = None  # roll, pitch, yaw (ZYX Euler), rad
+    # monotonic time of the older of the newest velocity and the newest attitude, s
+    motion_t_s: float = -math.inf
+
+    def ego(self, max_age_s: float) -> EgoMotion | None:
+        """The camera's velocity in its own axes (camera on the body's forward axis), when
+        the velocity and the attitude are both known and younger than ``max_age_s``."""
+        if (self.velocity_ned_mps is None or self.attitude_rad is None
+                or self.t_s - self.motion_t_s > max_age_s):
+            return None
+        return EgoMotion(camera_velocity(self.velocity_ned_mps, *self.attitude_rad))
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy as np
 
 from app.camera import camera_from_config
 from app.config import Config
+from app.decision.ego import EgoMotion
 from app.decision.policy import DecisionMaker, passage_fields
 from app.flight.engagement import Decision, Engagement, Output, VehicleState
 from app.flight.loop import Controller, FlightLink, LoopStats, control_loop
@@ -43,6 +44,9 @@ T = TypeVar("T")
 CONTROL_STOP_S = 2.0  # bound on leaving Offboard at shutdown
 PERCEPTION_STOP_S = 2.0  # bound on the frame in the worker thread
 CAMERA_STOP_S = 3.0  # bound on the camera's last wait and close
+# the vehicle's velocity and attitude older than this are not used by the decision (PX4 streams
+# both at 10-50 Hz; the stand-in vehicle at 20 Hz), s
+EGO_MAX_AGE_S = 0.3
 STALL_FACTOR = 5.0  # no frame for this many frame intervals is logged as a camera stall
 
 
@@ -256,15 +260,21 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
             seen = frames.version
             if record is not None:
                 record_number[frame.index] = record.frame(frame)
-            altitude = link.snapshot().altitude_m
+            vehicle = link.snapshot()
+            altitude = vehicle.altitude_m
+            # the camera's velocity for the frame perception decides on (one frame behind
+            # this one: within a frame's time of now, as the telemetry itself is)
+            ego = vehicle.ego(EGO_MAX_AGE_S)
 
-            def work(f: Frame = frame, alt: float | None = altitude) -> _Worked | None:
+            def work(f: Frame = frame, alt: float | None = altitude,
+                     ego: EgoMotion | None = ego) -> _Worked | None:
                 t_start = time.monotonic()
                 result = perception.push(f)
                 if result is None:
                     return None
                 t_perceived = time.monotonic()
-                command, objects = decider.step(result.tracks, result.frame.depth, result.frame.t_s, alt)
+                command, objects = decider.step(result.tracks, result.frame.depth, result.frame.t_s, alt,
+                                                ego=ego)
                 t_decided = time.monotonic()
                 stats.perception_ms.append((t_decided - t_start) * 1000.0)
                 boxes = [(t.track_id, *t.box, t.confidence, t.reported) for t in result.tracks
