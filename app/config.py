@@ -449,6 +449,11 @@ class DecisionConfig:
         "campaign, seed 11: 1.0 s avoided 55 of 98 threats, 0.4 s 51)", gt=0
     )
     looming_min_samples: int = param(6, "image estimate: fewest matched frames in the window", ge=3)
+    unreported_looming_sigmas: float = param(
+        0.0, "response trigger: an object seen in the image only that perception's confidence "
+        "does not report may still trigger when its size grows by at least this many standard "
+        "errors of the fit's expansion (0: never; static structure is still cleared by the "
+        "static-structure test)", ge=0)
     ego_rate_noise_rad_s: float = param(
         0.02, "static-structure test (app.decision.ego): the camera's rotation rate not taken "
         "out of the image (attitude jitter), added to a bearing rate's error, rad/s", ge=0)

@@ -109,11 +109,15 @@ def _track(tid: int, box: tuple[float, float, float, float], t_s: float) -> Trac
 CAM = CameraModel(K, K, np.eye(3), np.array([0.015, 0.0, 0.0]))
 
 
-def _decide(boxes: list[tuple[float, float, float, float]], ego: EgoMotion | None) -> list[str]:
-    dm = DecisionMaker(DecisionConfig(trigger="response"), CAM)
+def _decide(boxes: list[tuple[float, float, float, float]], ego: EgoMotion | None,
+            reported: bool = True, unreported_sigmas: float = 0.0) -> list[str]:
+    dm = DecisionMaker(DecisionConfig(trigger="response", unreported_looming_sigmas=unreported_sigmas), CAM)
     actions = []
     for i, box in enumerate(boxes):
-        cmd, _ = dm.step([_track(7, box, i / 30.0)], None, i / 30.0, 10.0, ego=ego)
+        track = _track(7, box, i / 30.0)
+        if not reported:
+            track = track.scored(0.1, (), False)
+        cmd, _ = dm.step([track], None, i / 30.0, 10.0, ego=ego)
         actions.append(cmd.action)
     return actions
 
@@ -154,3 +158,22 @@ def test_the_vehicles_motion_reaches_the_decision_only_when_known_and_young() ->
                         motion_t_s=9.9).ego(0.3) is None  # no attitude: no camera axes
     assert VehicleState(10.0, True, True, True, "position", 12.0, attitude_rad=(0.0, 0.0, 0.0),
                         motion_t_s=9.9).ego(0.3) is None  # no velocity
+
+
+def test_an_unreported_object_that_clearly_looms_triggers_only_when_configured() -> None:
+    # the same ball, scored as clutter by perception's confidence: by default the image alone
+    # never acts on it; with unreported_looming_sigmas its growth beyond doubt is enough
+    boxes = _boxes((1.0, 0.5, 18.0), (-1.0 / 18 * 8, -0.5 / 18 * 8, -8.0), 2.2, 0.3)
+    assert set(_decide(boxes, None, reported=False)) == {NONE}
+    assert "evade" in _decide(boxes, None, reported=False, unreported_sigmas=4.0)
+    # the gate is the fit's own significance: no ball's growth is 1000 standard errors
+    assert set(_decide(boxes, None, reported=False, unreported_sigmas=1000.0)) == {NONE}
+
+
+def test_unreported_static_structure_is_cleared_by_the_cameras_velocity() -> None:
+    # the tree crown of the test above, unreported: with unreported looming allowed it
+    # would trigger without the camera's velocity, and is cleared with it
+    boxes = _boxes((2.5, 0.3, 10.0), (0.0, 0.0, -4.0), 2.2, 1.0)
+    assert "evade" in _decide(boxes, None, reported=False, unreported_sigmas=4.0)
+    ego = EgoMotion((0.0, 0.0, 4.0), 0.1)
+    assert set(_decide(boxes, ego, reported=False, unreported_sigmas=4.0)) == {NONE}

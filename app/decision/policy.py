@@ -344,10 +344,10 @@ class DecisionMaker:
             if tr is not None:
                 out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image_of(tid), tid),
                                                reported=t.reported))
-            elif t.reported or tid == engaged:
+            elif t.reported or tid == engaged or c.unreported_looming_sigmas > 0:
                 # (an unreported track seen in the image only is clutter to perception, and the
-                # decision never acts on it: its fit is not made, a third of the decision's time
-                # in object-free flight)
+                # decision acts on it only when it clearly looms, if configured: otherwise its
+                # fit is not made, a third of the decision's time in object-free flight)
                 image = image_of(tid)
                 if image is not None:
                     o = self._image_only(tid, image, t_s, ego)
@@ -512,9 +512,13 @@ class DecisionMaker:
         c = self.cfg
         if o.tau_s is None or o.tau_s <= 0:
             return None
-        if o.source == "image" and not o.reported:
-            return None  # no range and perception calls it clutter: the image alone won't do
         if o.tau_std_s is None:
+            return None
+        if o.source == "image" and not o.reported and not (
+                c.unreported_looming_sigmas > 0 and o.tau_std_s > 0
+                and o.tau_s >= c.unreported_looming_sigmas * o.tau_std_s):
+            # no range and perception calls it clutter: the image alone won't do, unless its
+            # growth is beyond doubt (τ/σ_τ = expansion/σ_expansion, to first order)
             return None
         if o.static_miss_m is not None and o.static_miss_std_m is not None:
             widest = c.vehicle_radius_m + c.object_diameter_max_m / 2 + c.clearance_margin_m
