@@ -449,6 +449,11 @@ class DecisionConfig:
         "campaign, seed 11: 1.0 s avoided 55 of 98 threats, 0.4 s 51)", gt=0
     )
     looming_min_samples: int = param(6, "image estimate: fewest matched frames in the window", ge=3)
+    camera_mount: str = param(
+        "body", "how the colour camera is carried: body (fixed to the airframe, looking along "
+        "its forward axis: it rolls and pitches with it) or gimbal (held level, turning with "
+        "the yaw only); the vehicle's attitude turns its velocity into the camera's axes and "
+        "takes the camera's rotation out of the image history", choices=("body", "gimbal"))
     unreported_looming_sigmas: float = param(
         0.0, "response trigger: an object seen in the image only that perception's confidence "
         "does not report may still trigger when its size grows by at least this many standard "

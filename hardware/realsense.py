@@ -172,6 +172,7 @@ class RealSenseSource(FrameSource):
         self.cfg = cfg
         self.path = path
         self.live = path is None
+        self.carried = path is None  # the D435i on the vehicle, not a recording of one
         self.has_depth = True
         self.name = "d435i" if path is None else path.stem
         self.fps = float(cfg.color_fps)

@@ -11,12 +11,12 @@ import pytest
 
 from app.camera import CameraModel
 from app.config import DecisionConfig
-from app.decision.ego import EgoMotion, camera_velocity, static_fit
-from app.decision.policy import NONE, DecisionMaker
+from app.decision.ego import EgoMotion, camera_velocity, derotation, mounted, static_fit
+from app.decision.policy import NONE, DecisionMaker, ObjectState
 from app.flight.engagement import VehicleState
 from app.perception.recognition import Cluster
 from app.perception.tracking import TrackReport
-from tests.test_looming import K, fly
+from tests.test_looming import K, box_of, fly
 
 
 def test_camera_velocity_turns_ned_into_the_cameras_axes() -> None:
@@ -177,3 +177,99 @@ def test_unreported_static_structure_is_cleared_by_the_cameras_velocity() -> Non
     assert "evade" in _decide(boxes, None, reported=False, unreported_sigmas=4.0)
     ego = EgoMotion((0.0, 0.0, 4.0), 0.1)
     assert set(_decide(boxes, ego, reported=False, unreported_sigmas=4.0)) == {NONE}
+
+
+KM = np.array([[K.fx, 0.0, K.ppx], [0.0, K.fy, K.ppy], [0.0, 0.0, 1.0]])
+
+
+def _moved(h: np.ndarray, u: float, v: float) -> tuple[float, float]:
+    q = h @ np.array([u, v, 1.0])
+    return float(q[0] / q[2]), float(q[1] / q[2])
+
+
+def test_derotation_moves_far_points_as_the_cameras_turn_does() -> None:
+    # yawing right by 10°: a point straight ahead moves left by f·tan 10°
+    u, v = _moved(derotation((0.0, 0.0, 0.0), (0.0, 0.0, math.radians(10.0)), KM), K.ppx, K.ppy)
+    assert u == pytest.approx(K.ppx - K.fx * math.tan(math.radians(10.0)))
+    assert v == pytest.approx(K.ppy)
+    # pitching the nose up by 8° (positive pitch): the horizon ahead moves down
+    u, v = _moved(derotation((0.0, 0.0, 0.0), (0.0, math.radians(8.0), 0.0), KM), K.ppx, K.ppy)
+    assert (u, v) == pytest.approx((K.ppx, K.ppy + K.fy * math.tan(math.radians(8.0))))
+    # rolling right by 20°: a point on the horizon to the right ends up above the camera's
+    # (tilted) right axis; the image turns about the principal point
+    phi = math.radians(20.0)
+    x = 0.4  # X/Z level
+    u, v = _moved(derotation((0.0, 0.0, 0.0), (phi, 0.0, 0.0), KM), K.ppx + K.fx * x, K.ppy)
+    assert u == pytest.approx(K.ppx + K.fx * x * math.cos(phi))
+    assert v == pytest.approx(K.ppy - K.fy * x * math.sin(phi))
+    # composed turns compose, and turning back undoes them
+    a, b, c = (0.1, -0.2, 0.3), (-0.15, 0.05, 0.5), (0.3, 0.1, -0.2)
+    ab, bc, ac = derotation(a, b, KM), derotation(b, c, KM), derotation(a, c, KM)
+    assert _moved(bc @ ab, 100.0, 50.0) == pytest.approx(_moved(ac, 100.0, 50.0))
+    assert _moved(derotation(b, a, KM) @ ab, 100.0, 50.0) == pytest.approx((100.0, 50.0))
+
+
+def test_derotation_agrees_with_the_cameras_velocity() -> None:
+    # a world-fixed vector (the vehicle's velocity) seen in the camera's axes before and after
+    # a turn: the rotation that derotation uses carries one into the other
+    v_ned = (3.0, -1.0, 0.5)
+    before, after = (0.2, -0.1, 0.4), (-0.1, 0.15, 0.6)
+    c0 = np.array(camera_velocity(v_ned, *before))
+    c1 = np.array(camera_velocity(v_ned, *after))
+    rot = np.linalg.inv(KM) @ derotation(before, after, KM) @ KM
+    assert rot @ c0 == pytest.approx(c1)
+
+
+def test_a_gimbal_holds_the_camera_level_and_turns_it_with_the_yaw() -> None:
+    assert mounted((0.2, -0.1, 1.0), "body") == (0.2, -0.1, 1.0)
+    assert mounted((0.2, -0.1, 1.0), "gimbal") == (0.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="camera mount 'belly'"):
+        mounted((0.0, 0.0, 0.0), "belly")
+    v = VehicleState(10.0, True, True, True, "position", 12.0, velocity_ned_mps=(3.0, 0.0, 0.0),
+                     attitude_rad=(0.0, math.radians(-10.0), 0.0), motion_t_s=9.9)
+    body, gimbal = v.ego(0.3, "body"), v.ego(0.3, "gimbal")
+    assert body is not None and gimbal is not None
+    assert body.velocity_mps[1] < -0.5  # nose down: the line of flight lies above the axis
+    assert gimbal.velocity_mps == pytest.approx((0.0, 0.0, 3.0))
+
+
+def _rolled_boxes(phi_rate: float, seconds: float) -> tuple[list[tuple[float, float, float, float]],
+                                                            list[tuple[float, float, float]]]:
+    """A ball crossing 1 m right of the camera in 2 s, seen by a camera that rolls right at
+    ``phi_rate`` rad/s about its optical axis (a multirotor banking to accelerate), and the
+    camera's attitude at each frame."""
+    start, vel = np.array([1.0 + 2.0 * 2.0, 0.0, 16.0]), np.array([-2.0, 0.0, -8.0])
+    boxes, attitudes = [], []
+    for i in range(int(seconds * 30) + 1):
+        t = i / 30.0
+        phi = phi_rate * t
+        x, y, z = start + vel * t
+        # the level camera's point in the rolled camera's axes (rolled right: its X axis tilts
+        # down, so a point to the right rises in the image)
+        xr, yr = math.cos(phi) * x + math.sin(phi) * y, -math.sin(phi) * x + math.cos(phi) * y
+        boxes.append(box_of(np.array([xr, yr, z]), 0.3))
+        attitudes.append((phi, 0.0, 0.0))
+    return boxes, attitudes
+
+
+def test_the_cameras_roll_is_taken_out_of_the_passage() -> None:
+    def passage(rate: float, derotate: bool) -> tuple[float, float]:
+        boxes, att = _rolled_boxes(rate, 1.0)
+        dm = DecisionMaker(DecisionConfig(trigger="response"), CAM)
+        objects: list[ObjectState] = []
+        for i, box in enumerate(boxes):
+            turn = derotation(att[i - 1], att[i], KM) if derotate and i else None
+            _, objects = dm.step([_track(7, box, i / 30.0)], None, i / 30.0, 10.0, derotation=turn)
+        (o,) = objects
+        assert o.miss_sizes is not None
+        phi = att[-1][0]  # the passage in the final camera's axes, turned back to level
+        mx, my = o.miss_sizes
+        return math.cos(phi) * mx - math.sin(phi) * my, math.sin(phi) * mx + math.cos(phi) * my
+
+    level = passage(0.0, False)
+    assert level[0] == pytest.approx(1.0 / 0.3, rel=0.15)  # 1 m right: 3.3 ball sizes
+    # banking at 60°/s for the last second: derotated, the passage is the level camera's;
+    # not derotated, the roll reads as the ball sweeping round and the passage is far off
+    assert passage(math.radians(60.0), True) == pytest.approx(level, abs=0.3)
+    off = passage(math.radians(60.0), False)
+    assert math.hypot(off[0] - level[0], off[1] - level[1]) > 2.0

@@ -112,6 +112,59 @@ async def test_approaching_ball_makes_the_vehicle_evade_and_the_record_replays(
 
 
 @pytest.mark.asyncio
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize(("mount", "carried"), [("body", True), ("gimbal", True), ("body", False)])
+async def test_the_vehicles_turns_reach_the_decision_as_the_cameras_rotation(
+        ball: Path, mount: str, carried: bool, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the stand-in rocks its reported roll by 0.2 rad every 0.1 s: a camera fixed to the body
+    # turns with it and the decision is handed that turn, frame to frame; one a gimbal holds
+    # level is not (its yaw does not change); a recording played as the camera is not the
+    # vehicle's camera, and gets neither the turns nor the velocity
+    from app.decision.policy import DecisionMaker
+
+    turns: list[np.ndarray | None] = []
+    egos: list[object] = []
+    step = DecisionMaker.step
+
+    def spy(self: DecisionMaker, *args: Any, **kwargs: Any) -> Any:
+        turns.append(kwargs.get("derotation"))
+        egos.append(kwargs.get("ego"))
+        return step(self, *args, **kwargs)
+
+    monkeypatch.setattr(DecisionMaker, "step", spy)
+    cfg = replace(Config(), decision=replace(Config().decision, camera_mount=mount))
+    async with vehicle(SimState(mode="position"), flying) as (sim, link):
+        async def rock() -> None:
+            while True:
+                sim.state.roll_rad = 0.2 - sim.state.roll_rad
+                await asyncio.sleep(0.1)
+
+        rocking = asyncio.create_task(rock())
+        source = open_source(ball)
+        source.carried = carried  # played as if it were the vehicle's own D435i
+        try:
+            await fly(cfg, source, link, install_signals=False)
+        finally:
+            rocking.cancel()
+    given = [t for t in turns if t is not None]
+    if not carried:
+        assert len(turns) > 50 and not given and not any(egos)
+        return
+    assert sum(e is not None for e in egos) >= 0.8 * len(egos)
+    assert len(given) >= 0.8 * len(turns) > 50  # the attitude is fresh for nearly every frame
+    # how far each turn moves the principal point, px
+    moved = [float(np.hypot(*((t @ np.array([320.0, 240.0, 1.0]))[:2] / (t @ np.array([320.0, 240.0, 1.0]))[2]
+                              - np.array([320.0, 240.0])))) for t in given]
+    corner = [float(np.hypot(*((t @ np.array([0.0, 0.0, 1.0]))[:2] / (t @ np.array([0.0, 0.0, 1.0]))[2])))
+              for t in given]
+    if mount == "body":
+        # a roll of 0.2 rad turns the image about its centre: a corner moves by ~0.2 x 400 px
+        assert sum(c > 40.0 for c in corner) >= 10
+    else:
+        assert max(corner) < 1e-6 and max(moved) < 1e-6
+
+
+@pytest.mark.asyncio
 @pytest.mark.timeout(120)
 async def test_camera_stall_mid_evasion_holds_then_recovers(tmp_path: Path) -> None:
     rs = pytest.importorskip("pyrealsense2")

@@ -33,6 +33,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from app.decision.looming import ImageEstimate
 
 # A blob's three rates fit static structure when their chi-square (2 degrees of freedom) is
@@ -70,6 +72,43 @@ def camera_velocity(velocity_ned_mps: tuple[float, float, float], roll_rad: floa
     right = (sr * sp * cy - cr * sy) * n + (sr * sp * sy + cr * cy) * e + sr * cp * d
     down = (cr * sp * cy + sr * sy) * n + (cr * sp * sy - sr * cy) * e + cr * cp * d
     return right, down, forward
+
+
+# colour-camera axes (X right, Y down, Z forward) from the body's FRD axes
+_BODY_TO_CAMERA = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+
+
+def mounted(attitude_rad: tuple[float, float, float], mount: str) -> tuple[float, float, float]:
+    """The camera's own attitude (roll, pitch, yaw): the body's for a camera fixed to it
+    (``body``), yaw alone for one a gimbal holds level (``gimbal``)."""
+    if mount == "body":
+        return attitude_rad
+    if mount == "gimbal":
+        return 0.0, 0.0, attitude_rad[2]
+    raise ValueError(f"camera mount {mount!r}: expected 'body' or 'gimbal'")
+
+
+def _body_to_ned(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    return rz @ ry @ rx  # ZYX Euler, as PX4 and MAVLink's ATTITUDE give them
+
+
+def derotation(before_rad: tuple[float, float, float], after_rad: tuple[float, float, float],
+               k: np.ndarray) -> np.ndarray:
+    """K·R·K⁻¹: where a direction fixed in the world, seen at pixel p with the camera at
+    attitude ``before_rad``, is seen with it at ``after_rad`` (homogeneous px -> px). Carries
+    the image history through the camera's *rotation* only: a bank of 20° to accelerate
+    sideways (4 m/s² needs tan⁻¹(4 / 9.81) = 22°) would otherwise read as a bearing rate
+    tens of times an object's."""
+    r_b = _body_to_ned(*before_rad)
+    r_a = _body_to_ned(*after_rad)
+    rot = _BODY_TO_CAMERA @ r_a.T @ r_b @ _BODY_TO_CAMERA.T  # camera(before) -> camera(after)
+    return np.asarray(k @ rot @ np.linalg.inv(k), dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -46,7 +46,7 @@ import math
 from dataclasses import dataclass
 
 from app.config import FlightConfig
-from app.decision.ego import EgoMotion, camera_velocity
+from app.decision.ego import EgoMotion, camera_velocity, mounted
 from app.decision.policy import NONE, STOP, Command, describe_direction
 
 MONITOR, REQUESTING, ENGAGED = "monitor", "requesting", "engaged"
@@ -77,13 +77,21 @@ class VehicleState:
     # monotonic time of the older of the newest velocity and the newest attitude, s
     motion_t_s: float = -math.inf
 
-    def ego(self, max_age_s: float) -> EgoMotion | None:
-        """The camera's velocity in its own axes (camera on the body's forward axis), when
-        the velocity and the attitude are both known and younger than ``max_age_s``."""
-        if (self.velocity_ned_mps is None or self.attitude_rad is None
-                or self.t_s - self.motion_t_s > max_age_s):
+    def ego(self, max_age_s: float, mount: str = "body") -> EgoMotion | None:
+        """The camera's velocity in its own axes (camera on the body's forward axis, or held
+        level by a gimbal: ``mount``), when the velocity and the attitude are both known and
+        younger than ``max_age_s``."""
+        attitude = self.camera_attitude(max_age_s, mount)
+        if self.velocity_ned_mps is None or attitude is None:
             return None
-        return EgoMotion(camera_velocity(self.velocity_ned_mps, *self.attitude_rad))
+        return EgoMotion(camera_velocity(self.velocity_ned_mps, *attitude))
+
+    def camera_attitude(self, max_age_s: float, mount: str = "body") -> tuple[float, float, float] | None:
+        """The camera's attitude (roll, pitch, yaw rad) from the vehicle's, when known and
+        younger than ``max_age_s``."""
+        if self.attitude_rad is None or self.t_s - self.motion_t_s > max_age_s:
+            return None
+        return mounted(self.attitude_rad, mount)
 
 
 @dataclass(frozen=True)

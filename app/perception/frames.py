@@ -75,6 +75,10 @@ class FrameSource:
     has_depth: bool = False
     camera: CameraModel | None = None  # calibration that came with the source, if any
     live: bool = False  # a live camera: frames stamped on the monotonic clock, never paced
+    # the camera flies on the vehicle being commanded, so its motion is the vehicle's (a
+    # recording or a synthetic scene played as the camera is not: the vehicle's velocity and
+    # attitude say nothing about how its frames moved)
+    carried: bool = False
 
     def close(self) -> None:
         """Release the device or files (a no-op for sources that hold nothing open)."""

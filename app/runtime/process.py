@@ -28,7 +28,7 @@ import numpy as np
 
 from app.camera import camera_from_config
 from app.config import Config
-from app.decision.ego import EgoMotion
+from app.decision.ego import EgoMotion, derotation
 from app.decision.policy import DecisionMaker, passage_fields
 from app.flight.engagement import Decision, Engagement, Output, VehicleState
 from app.flight.loop import Controller, FlightLink, LoopStats, control_loop
@@ -241,13 +241,18 @@ class _Worked:
 async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], wake: asyncio.Event,
                    stop: asyncio.Event, cfg: Config, decider: DecisionMaker, link: FlightLink,
                    stats: RunStats, record: FlightRecord | None = None,
-                   notifier: Notifier | None = None) -> None:
-    """Stages 1–4 in a dedicated worker thread; publish each new decision; kick the watchdog."""
+                   notifier: Notifier | None = None, carried: bool = False) -> None:
+    """Stages 1–4 in a dedicated worker thread; publish each new decision; kick the watchdog.
+    ``carried``: the frames come from the vehicle's own camera, so the vehicle's velocity and
+    attitude are the camera's (:attr:`FrameSource.carried`)."""
     perception = Perception(cfg.perception)
     pool = ThreadPoolExecutor(1, thread_name_prefix="perception")
     loop = asyncio.get_running_loop()
     seen = 0
     record_number: dict[int, int | None] = {}  # source frame -> frame number in the record
+    lens = decider.camera.color
+    lens_k = np.array([[lens.fx, 0.0, lens.ppx], [0.0, lens.fy, lens.ppy], [0.0, 0.0, 1.0]])
+    last_attitude: list[tuple[float, float, float] | None] = [None]  # at the last frame decided on
     last_command = ""
     try:
         while not stop.is_set():
@@ -262,19 +267,28 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                 record_number[frame.index] = record.frame(frame)
             vehicle = link.snapshot()
             altitude = vehicle.altitude_m
-            # the camera's velocity for the frame perception decides on (one frame behind
-            # this one: within a frame's time of now, as the telemetry itself is)
-            ego = vehicle.ego(EGO_MAX_AGE_S)
+            # the camera's velocity and attitude for the frame perception decides on (one
+            # frame behind this one: within a frame's time of now, as the telemetry itself is)
+            # (only for the vehicle's own camera: a recording played as the camera moved as
+            # its own vehicle did, and the static-structure test would misplace its objects)
+            mount = cfg.decision.camera_mount
+            ego = vehicle.ego(EGO_MAX_AGE_S, mount) if carried else None
+            attitude = vehicle.camera_attitude(EGO_MAX_AGE_S, mount) if carried else None
 
-            def work(f: Frame = frame, alt: float | None = altitude,
-                     ego: EgoMotion | None = ego) -> _Worked | None:
+            def work(f: Frame = frame, alt: float | None = altitude, ego: EgoMotion | None = ego,
+                     attitude: tuple[float, float, float] | None = attitude) -> _Worked | None:
                 t_start = time.monotonic()
                 result = perception.push(f)
                 if result is None:
                     return None
                 t_perceived = time.monotonic()
+                # the camera's rotation since the last frame decided on, taken out of the
+                # image history (none when either attitude is unknown or stale)
+                before = last_attitude[0]
+                last_attitude[0] = attitude
+                turn = None if before is None or attitude is None else derotation(before, attitude, lens_k)
                 command, objects = decider.step(result.tracks, result.frame.depth, result.frame.t_s, alt,
-                                                ego=ego)
+                                                derotation=turn, ego=ego)
                 t_decided = time.monotonic()
                 stats.perception_ms.append((t_decided - t_start) * 1000.0)
                 boxes = [(t.track_id, *t.box, t.confidence, t.reported) for t in result.tracks
@@ -406,7 +420,8 @@ async def fly(cfg: Config, source: FrameSource, link: FlightLink, *, install_sig
                 link, controller, decisions.get, stop, stats=stats.loop, wake=wake,
                 on_tick=_TickLog(stats, record, notifier)), name="offboard")
             per = tg.create_task(perceive(frames, decisions, wake, stop, cfg, decider, link, stats,
-                                          record, notifier), name="perception")
+                                          record, notifier, carried=getattr(source, "carried", False)),
+                                 name="perception")
             cam = tg.create_task(capture(source, frames, stop, stats, realtime, record), name="capture")
             ends = [cam, asyncio.ensure_future(stop.wait())]
             if seconds is not None:

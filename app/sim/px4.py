@@ -79,6 +79,8 @@ class SimState:
     pos_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, -10.0])  # m, home at 0
     vel_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s
     yaw_rad: float = 0.0
+    roll_rad: float = 0.0  # reported only (a test can rock the attitude): the dynamics stay level
+    pitch_rad: float = 0.0
     mission_seq: int = 0
     mission_count: int = 5
     cruise_mps: float = 2.0  # forward speed while in Mission, m/s
@@ -382,7 +384,7 @@ class SimPx4:
         mav.global_position_int_send(boot_ms, int(lat * 1e7), int(lon * 1e7),
                                      int((alt0 - d) * 1000), int(-d * 1000),
                                      int(vn * 100), int(ve * 100), int(vd * 100), 0)
-        mav.attitude_send(boot_ms, 0.0, 0.0, st.yaw_rad, 0.0, 0.0, 0.0)
+        mav.attitude_send(boot_ms, st.roll_rad, st.pitch_rad, st.yaw_rad, 0.0, 0.0, 0.0)
 
     def _send_requested(self, msg_id: int) -> None:
         if msg_id == ml.MAVLINK_MSG_ID_AUTOPILOT_VERSION:

@@ -123,6 +123,7 @@ class SimulatedCamera(FrameSource):
     """
 
     live = True
+    carried = True  # rendered from the vehicle's own pose (held level: see _encounter)
 
     def __init__(self, enc: Encounter, pose: Any, world: Renderer, paced: bool = True) -> None:
         self.enc = enc
@@ -235,6 +236,10 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     from hardware.px4 import PortInUseError, Px4Link
 
     wall0 = time.monotonic()
+    # The simulated camera renders from the vehicle's position and yaw only: it is held
+    # level, as a gimbal would hold it, whatever attitude the autopilot reports (PX4 SITL's
+    # roll and pitch are real), and the decision must be told so.
+    cfg = replace(cfg, decision=replace(cfg.decision, camera_mount="gimbal"))
     sim = None
     link = None
     # the stand-in's port is picked free, released, then bound by MAVSDK: in between another
