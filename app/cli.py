@@ -157,6 +157,9 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--vel-gain", type=float, default=1.8, metavar="P_ACC", help="the stand-in "
                    "vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8; hardware/px4-companion.params "
                    "recommends 2.5): how quickly it builds lateral speed")
+    m.add_argument("--tilt", action="store_true", help="the camera is fixed to the body and banks "
+                   "and pitches as the vehicle accelerates (default: held level); the decision runs "
+                   "with decision.camera_mount: body, derotating by the autopilot's attitude")
     m.add_argument("--own-speed", type=float, default=0.0, help="single encounter: the vehicle's "
                    "forward speed (Mission leg), m/s; 0 hovers")
     m.add_argument("--resume", type=Path, metavar="DIR", help="campaign: continue the one in DIR "
@@ -513,7 +516,7 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     if not sets_given and not args.resume:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
-                        world=args.world, xy_vel_p_acc=args.vel_gain)
+                        world=args.world, xy_vel_p_acc=args.vel_gain, tilt=args.tilt)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
@@ -528,12 +531,15 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
     out = args.resume or args.out
     workers = args.workers or default_workers()
-    flown = {"fps": args.fps, "world": args.world, "xy_vel_p_acc": args.vel_gain}
+    flown = {"fps": args.fps, "world": args.world, "xy_vel_p_acc": args.vel_gain, "tilt": args.tilt}
     encounters = [replace(e, **flown) for e in sample_encounters(args.campaign or 0, args.seed)]
     wide = [replace(e, **flown) for e in wide_passes(args.wide_passes, args.seed)]
     cross = [replace(e, **flown) for e in crossing_set(args.crossing, args.seed)]
     free = [replace(e, **flown) for e in object_free(args.object_free, args.seed)] if args.object_free else []
     if args.open_loop:
+        if args.tilt:
+            raise UsageError("--tilt flies the closed loop only: the open loop's scripted flights "
+                             "do not accelerate, so their camera stays level")
         return _open_loop(cfg, [("main", encounters), ("wide", wide), ("crossing", cross), ("free", free)],
                           workers, out)
     fast = not args.realtime_object_free
@@ -543,6 +549,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
             "fast_object_free": fast, "trigger": cfg.decision.trigger, "config": config_digest(cfg)}
     if args.vel_gain != Encounter.xy_vel_p_acc:  # only then: older campaigns resume as before
         plan["vel_gain"] = args.vel_gain
+    if args.tilt:
+        plan["tilt"] = True
     log = ResultLog(out, plan, resume=args.resume is not None)
     everything = [*encounters, *wide, *cross, *free]
     bar = _CampaignBar(len(everything), len(log.done),

@@ -242,6 +242,10 @@ class Px4Link:
             raise RuntimeError(f"no local position from {self.url} yet")
         return t.local_ned, t.velocity_ned or (0.0, 0.0, 0.0), t.yaw_rad or 0.0
 
+    def attitude(self) -> tuple[float, float, float]:
+        """The vehicle's attitude from telemetry: roll, pitch, yaw (rad); level until known."""
+        return self._tel.attitude or (0.0, 0.0, self._tel.yaw_rad or 0.0)
+
     def _on_connected(self, v: object) -> None:
         self._tel.connected = bool(v)
 

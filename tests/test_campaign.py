@@ -111,6 +111,9 @@ def test_compare_on_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     out = capsys.readouterr().out
     assert "avoided by A only: 10, by B only: 0" in out and "differ beyond chance" in out
     assert main(["simulate", "compare", str(tmp_path / "a")]) == 2
+    # the open loop's scripts never accelerate: a tilting camera is refused, not ignored
+    assert main(["simulate", "--open-loop", "--campaign", "1", "--tilt", "--out", str(tmp_path / "t")]) == 2
+    assert "--tilt flies the closed loop only" in capsys.readouterr().err
     assert main(["simulate", "compare", str(tmp_path / "a"), str(tmp_path / "none")]) == 2
 
 

@@ -18,7 +18,9 @@ pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
 
 from app.cli import main  # noqa: E402
+from app.sim.px4 import SimState  # noqa: E402
 from app.sim.simulate import Encounter, run_encounter  # noqa: E402
+from tests.conftest import free_udp_port as free_port  # noqa: E402
 
 
 def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -> None:
@@ -34,6 +36,65 @@ def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -
     expected = 2.0 * intr.fy / (intr.height - 1 - intr.ppy)
     assert depth[-1, 5] == pytest.approx(expected * 1000, abs=2)
     assert (depth[: int(intr.ppy)] == 0).all()  # sky: no depth data
+
+
+def test_a_tilting_camera_turns_the_frame_about_its_centre_and_keeps_depths_true() -> None:
+    from app.decision.ego import derotation
+    from app.sim.world import Tilted, d435i_color
+
+    lens = d435i_color(848, 480)
+    cam = Tilted("", 3, lens)
+    ball = [Sphere(1, (6.0, 1.0, -6.0), 0.5, 20)]  # 6 m ahead, 1 m right, at our height
+
+    def look(roll: float, pitch: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
+        turn = derotation((0.0, 0.0, 0.0), (roll, pitch, 0.0), np.eye(3))
+        colour, depth, seen = cam.render((0.0, 0.0, -6.0), 0.0, ball, rotation=turn)
+        assert colour.shape == (480, 848, 3) and depth.shape == (480, 848)
+        return colour, depth, seen[1]
+
+    _c, _d, (u0, v0, _r, z0) = look(0.0, 0.0)
+    assert u0 == pytest.approx(lens.ppx + lens.fx / 6.0) and v0 == pytest.approx(lens.ppy)
+    assert z0 == pytest.approx(6.0)
+    # rolled right 20°: the image turns about the principal point, the range stays
+    phi = math.radians(20.0)
+    colour, depth, (u, v, _r, z) = look(phi, 0.0)
+    x = u0 - lens.ppx
+    assert (u, v) == pytest.approx((lens.ppx + x * math.cos(phi), lens.ppy - x * math.sin(phi)), abs=0.01)
+    assert z == pytest.approx(6.0)
+    assert colour[int(round(v)), int(round(u))].mean() < 60  # the dark ball is drawn there
+    assert depth[int(round(v)), int(round(u))] == pytest.approx(6000, abs=400)  # D435i noise at 6 m
+    # nose up 10°: what was ahead moves down by f·tan 10°, and is nearer along the new axis
+    theta = math.radians(10.0)
+    colour, depth, (u, v, _r, z) = look(0.0, theta)
+    assert v == pytest.approx(lens.ppy + lens.fy * math.tan(theta), abs=0.5)
+    ray_z = 6.0 * math.cos(theta) - 0.0 * math.sin(theta)  # Z of (1, 0, 6) m after the pitch
+    assert z == pytest.approx(ray_z, rel=0.01)
+    assert depth[int(round(v)), int(round(u))] == pytest.approx(1000 * ray_z, abs=400)
+
+
+def test_the_stand_in_banks_and_pitches_with_its_acceleration_when_it_tilts() -> None:
+    from app.sim.px4 import SimPx4
+
+    sim = SimPx4(free_port(), state=SimState(mode="offboard", tilts=True))
+    t, peak_roll = 0.0, 0.0
+    sim._setpoint_body = (0.0, 3.0, 0.0)  # 3 m/s to the right
+    for _ in range(150):  # 3 s
+        t += 0.02
+        sim._last_setpoint_t = t
+        sim._step(0.02, t)
+        peak_roll = max(peak_roll, sim.state.roll_rad)
+    # right side down to accelerate right, never more than the acceleration limit needs
+    assert math.radians(10.0) < peak_roll <= math.atan2(4.0, 9.81) + 1e-6
+    assert abs(sim.state.roll_rad) < math.radians(3.0)  # at speed: level again
+    sim._setpoint_body = (3.0, 3.0, 0.0)  # and forward
+    low_pitch = 0.0
+    for _ in range(25):
+        t += 0.02
+        sim._last_setpoint_t = t
+        sim._step(0.02, t)
+        low_pitch = min(low_pitch, sim.state.pitch_rad)
+    assert low_pitch < -math.radians(10.0)  # nose down to speed up forward
+    assert sim.attitude() == (sim.state.roll_rad, sim.state.pitch_rad, sim.state.yaw_rad)
 
 
 def test_a_far_object_darkens_the_sky_in_proportion_to_its_area_as_it_nears() -> None:
@@ -131,6 +192,15 @@ def test_a_ball_head_on_at_8_mps_is_avoided_with_the_response_trigger() -> None:
     assert r.detected and r.evaded and r.frames_dropped == 0
     assert r.success, r.row()
     assert r.evade_before_cpa_s is not None and r.evade_before_cpa_s >= 0.7
+
+
+def test_a_ball_head_on_at_8_mps_is_avoided_by_a_camera_that_banks_with_the_vehicle() -> None:
+    """The same ball seen by a camera fixed to a body that banks and pitches as it
+    accelerates away: the decision takes the turn out by the attitude and still dodges."""
+    r = run_encounter(Config(), Encounter(seed=5, object_speed_mps=8.0, approach_deg=0.0, t_cpa_s=4.0,
+                                          tilt=True))
+    assert r.detected and r.evaded and r.frames_dropped == 0
+    assert r.success, r.row()
 
 
 @pytest.mark.timeout(120)

@@ -253,6 +253,8 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
     lens = decider.camera.color
     lens_k = np.array([[lens.fx, 0.0, lens.ppx], [0.0, lens.fy, lens.ppy], [0.0, 0.0, 1.0]])
     last_attitude: list[tuple[float, float, float] | None] = [None]  # at the last frame decided on
+    # per frame not yet decided on: the camera's velocity and attitude when it arrived
+    motion: dict[int, tuple[EgoMotion | None, tuple[float, float, float] | None]] = {}
     last_command = ""
     try:
         while not stop.is_set():
@@ -267,21 +269,24 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
                 record_number[frame.index] = record.frame(frame)
             vehicle = link.snapshot()
             altitude = vehicle.altitude_m
-            # the camera's velocity and attitude for the frame perception decides on (one
-            # frame behind this one: within a frame's time of now, as the telemetry itself is)
+            # the camera's velocity and attitude as this frame arrives, kept for when
+            # perception decides on it (one frame later: it decides on the frame before the
+            # newest), so that the turn taken out is the one between the frames themselves
             # (only for the vehicle's own camera: a recording played as the camera moved as
             # its own vehicle did, and the static-structure test would misplace its objects)
             mount = cfg.decision.camera_mount
-            ego = vehicle.ego(EGO_MAX_AGE_S, mount) if carried else None
-            attitude = vehicle.camera_attitude(EGO_MAX_AGE_S, mount) if carried else None
+            motion[frame.index] = (vehicle.ego(EGO_MAX_AGE_S, mount) if carried else None,
+                                   vehicle.camera_attitude(EGO_MAX_AGE_S, mount) if carried else None)
 
-            def work(f: Frame = frame, alt: float | None = altitude, ego: EgoMotion | None = ego,
-                     attitude: tuple[float, float, float] | None = attitude) -> _Worked | None:
+            def work(f: Frame = frame, alt: float | None = altitude) -> _Worked | None:
                 t_start = time.monotonic()
                 result = perception.push(f)
                 if result is None:
                     return None
                 t_perceived = time.monotonic()
+                ego, attitude = motion.get(result.frame.index, (None, None))
+                for old in [i for i in motion if i < result.frame.index]:
+                    del motion[old]
                 # the camera's rotation since the last frame decided on, taken out of the
                 # image history (none when either attitude is unknown or stale)
                 before = last_attitude[0]

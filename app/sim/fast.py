@@ -52,8 +52,9 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
         raise ValueError("fly_fast: only object-free flights can run faster than real time "
                          "(with an object the vehicle's response feeds back into the camera)")
     wall0 = time.monotonic()
+    # (a tilting camera stays level too: the script never accelerates)
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
-                             paced=False)
+                             paced=False, attitude=(lambda: (0.0, 0.0, 0.0)) if enc.tilt else None)
     perception = Perception(cfg.perception)
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly

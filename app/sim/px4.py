@@ -62,6 +62,10 @@ ACCEL_LIMIT_MPS2 = 4.0
 DEAD_TIME_Z_S = 0.06
 TAU_Z_S = 0.15
 ACCEL_LIMIT_Z_MPS2 = 8.0
+# Tilt (SimState.tilts): the attitude follows the tilt the acceleration needs with the attitude
+# loop's time constant, 1 / MC_ROLL_P = 1 / 6.5 (PX4's default roll and pitch P gains)
+TILT_TAU_S = 1.0 / 6.5
+GRAVITY_MPS2 = 9.81
 OF_RESUME_S = 0.5  # PX4 leaves its offboard-loss failsafe after setpoints stream this long, s
 
 
@@ -79,8 +83,9 @@ class SimState:
     pos_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, -10.0])  # m, home at 0
     vel_ned: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m/s
     yaw_rad: float = 0.0
-    roll_rad: float = 0.0  # reported only (a test can rock the attitude): the dynamics stay level
+    roll_rad: float = 0.0  # reported (and, with tilts, what the simulated camera is rendered at)
     pitch_rad: float = 0.0
+    tilts: bool = False  # bank and pitch with the horizontal acceleration, as a multirotor does
     mission_seq: int = 0
     mission_count: int = 5
     cruise_mps: float = 2.0  # forward speed while in Mission, m/s
@@ -175,6 +180,11 @@ class SimPx4:
         with self._lock:
             st = self.state
             return tuple(st.pos_ned), tuple(st.vel_ned), st.yaw_rad  # type: ignore[return-value]
+
+    def attitude(self) -> tuple[float, float, float]:
+        """The true attitude now: roll, pitch, yaw (rad)."""
+        with self._lock:
+            return self.state.roll_rad, self.state.pitch_rad, self.state.yaw_rad
 
     def velocity_body(self) -> tuple[float, float, float]:
         """The vehicle's velocity, forward/right/down m/s."""
@@ -338,12 +348,23 @@ class SimPx4:
         goal = (tn, te, self._applied_z)
         lo, hi = XY_VEL_P_ACC_RANGE
         tau_xy = TAU_S * XY_VEL_P_ACC_DEFAULT / max(lo, min(hi, self.params["MPC_XY_VEL_P_ACC"]))
+        accel = [0.0, 0.0, 0.0]
         for i in range(3):
             tau, acc = (TAU_Z_S, ACCEL_LIMIT_Z_MPS2) if i == 2 else (tau_xy, ACCEL_LIMIT_MPS2)
             dv = (goal[i] - st.vel_ned[i]) * (1 - math.exp(-dt / tau))
             lim = acc * dt
-            st.vel_ned[i] += max(-lim, min(lim, dv))
+            accel[i] = max(-lim, min(lim, dv)) / dt if dt > 0 else 0.0
+            st.vel_ned[i] += accel[i] * dt
             st.pos_ned[i] += st.vel_ned[i] * dt
+        if st.tilts and dt > 0:
+            # a multirotor accelerates sideways by tilting its thrust: tan(tilt) = a / g, the
+            # nose down (negative pitch) to speed up forward, the right side down (positive
+            # roll) to go right; reached with the attitude loop's lag (TILT_TAU_S)
+            fwd = c * accel[0] + s * accel[1]
+            right = -s * accel[0] + c * accel[1]
+            k = 1 - math.exp(-dt / TILT_TAU_S)
+            st.roll_rad += (math.atan2(right, GRAVITY_MPS2) - st.roll_rad) * k
+            st.pitch_rad += (-math.atan2(fwd, GRAVITY_MPS2) - st.pitch_rad) * k
         if st.mode == "takeoff" and -st.pos_ned[2] >= self.params["MIS_TAKEOFF_ALT"]:
             self._set_mode("hold", "takeoff done")
         if st.mode == "land" and st.pos_ned[2] >= 0.0:

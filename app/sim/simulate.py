@@ -17,7 +17,7 @@ import asyncio
 import json
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -26,8 +26,9 @@ import numpy as np
 
 from app.camera import Intrinsics
 from app.config import Config
+from app.decision.ego import derotation
 from app.perception.frames import Frame, FrameSource
-from app.sim.world import Renderer, Sphere, d435i_color, load_world
+from app.sim.world import Renderer, Sphere, Tilted, d435i_color, load_world
 
 VEHICLE_RADIUS_M = 0.25  # a 250-size quadrotor with props: ~0.5 m across
 SAFETY_MARGIN_M = 0.2  # separation beyond the two radii that counts as a clean miss
@@ -55,6 +56,9 @@ class Encounter:
     with_object: bool = True
     world: str = ""  # "package.module:factory" of another world (app.sim.world.load_world); "": built-in
     xy_vel_p_acc: float = 1.8  # the stand-in vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8)
+    # the camera is fixed to the body and banks and pitches with the vehicle's acceleration
+    # (app.sim.world.Tilted); False: held level, as by a gimbal
+    tilt: bool = False
 
     @property
     def threat(self) -> bool:
@@ -125,8 +129,12 @@ class SimulatedCamera(FrameSource):
     live = True
     carried = True  # rendered from the vehicle's own pose (held level: see _encounter)
 
-    def __init__(self, enc: Encounter, pose: Any, world: Renderer, paced: bool = True) -> None:
+    def __init__(self, enc: Encounter, pose: Any, world: Renderer, paced: bool = True,
+                 attitude: Callable[[], tuple[float, float, float]] | None = None) -> None:
+        if isinstance(world, Tilted) and attitude is None:
+            raise ValueError("SimulatedCamera: a tilting camera needs the vehicle's attitude")
         self.enc = enc
+        self.attitude = attitude  # () -> (roll, pitch, yaw) rad, for a tilting camera
         # paced: one frame per period on the monotonic clock (the closed loop); else as fast as
         # it renders, stamped as if paced (faster-than-real-time flights, app.sim.fast)
         self.paced = paced
@@ -169,7 +177,12 @@ class SimulatedCamera(FrameSource):
             spheres = ([Sphere(1, (float(obj[0]), float(obj[1]), float(obj[2])), self.enc.size_m,
                                self.enc.grey, self.enc.kind)] if obj is not None else [])
             vehicle = (float(pos[0]), float(pos[1]), float(pos[2]))
-            colour, depth, seen = self.world.render(vehicle, yaw, spheres)
+            if isinstance(self.world, Tilted) and self.attitude is not None:
+                roll, pitch, _ = self.attitude()
+                turn = derotation((0.0, 0.0, yaw), (roll, pitch, yaw), np.eye(3))
+                colour, depth, seen = self.world.render(vehicle, yaw, spheres, rotation=turn)
+            else:
+                colour, depth, seen = self.world.render(vehicle, yaw, spheres)
             where = None if obj is None else (float(obj[0]), float(obj[1]), float(obj[2]))
             self.truth.append(Truth(k + 1, now, vehicle, where, seen.get(1)))
             yield Frame(k + 1, now, colour, depth)
@@ -238,8 +251,9 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     wall0 = time.monotonic()
     # The simulated camera renders from the vehicle's position and yaw only: it is held
     # level, as a gimbal would hold it, whatever attitude the autopilot reports (PX4 SITL's
-    # roll and pitch are real), and the decision must be told so.
-    cfg = replace(cfg, decision=replace(cfg.decision, camera_mount="gimbal"))
+    # roll and pitch are real), and the decision must be told so; with ``enc.tilt`` it is
+    # fixed to the body and turned by the vehicle's attitude.
+    cfg = replace(cfg, decision=replace(cfg.decision, camera_mount="body" if enc.tilt else "gimbal"))
     sim = None
     link = None
     # the stand-in's port is picked free, released, then bound by MAVSDK: in between another
@@ -248,7 +262,7 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
     for attempt in range(_BIND_ATTEMPTS):
         if connection is None or sim is not None:
             state = SimState(mode="mission" if enc.own_speed_mps > 0 else "position",
-                             cruise_mps=enc.own_speed_mps)
+                             cruise_mps=enc.own_speed_mps, tilts=enc.tilt)
             state.pos_ned = [0.0, 0.0, -enc.altitude_m]
             port = free_udp_port()
             sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc).start()
@@ -268,8 +282,9 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
             raise
     assert link is not None
     try:
-        camera = SimulatedCamera(enc, sim.pose if sim is not None and not pose_from_telemetry
-                                 else link.pose, world=world_for(cfg, enc))
+        source = sim if sim is not None and not pose_from_telemetry else link  # pose and attitude
+        camera = SimulatedCamera(enc, source.pose, world=world_for(cfg, enc),
+                                 attitude=source.attitude if enc.tilt else None)
         tmp = None
         if out_dir is None:
             tmp = tempfile.TemporaryDirectory(prefix="midair-sim-")
@@ -301,7 +316,10 @@ _BIND_ATTEMPTS = 5  # new ports tried for the stand-in when the picked one is ta
 def world_for(cfg: Config, enc: Encounter) -> Renderer:
     """The encounter's world, the built-in one drawn through the lens the configuration
     streams (``capture.color_width`` x ``color_height`` of a D435i)."""
-    return load_world(enc.world, enc.seed, d435i_color(cfg.capture.color_width, cfg.capture.color_height))
+    lens = d435i_color(cfg.capture.color_width, cfg.capture.color_height)
+    if enc.tilt:
+        return Tilted(enc.world, enc.seed, lens)
+    return load_world(enc.world, enc.seed, lens)
 
 
 def _jsonl(path: Path) -> list[dict[str, Any]]:

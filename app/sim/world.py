@@ -415,3 +415,56 @@ def load_world(spec: str, seed: int, lens: Intrinsics) -> Renderer:
                          "lacks camera() and render() (app.sim.world.Renderer)")
     return world
 
+
+
+class Tilted:
+    """A camera fixed to a multirotor's body, which banks and pitches to accelerate: the
+    world drawn level (its yaw only) through a lens wider by ``margin`` on every side, then
+    turned to the camera's roll and pitch. A turn about the camera's centre has no parallax,
+    so one homography (K·R·K_wide⁻¹) turns the whole frame exactly; each depth is rescaled to
+    the turned camera's Z. Needs a world that draws with the lens it is given."""
+
+    def __init__(self, spec: str, seed: int, lens: Intrinsics, margin: tuple[int, int] | None = None) -> None:
+        # up to ~25° of roll and ~22° of pitch (4 m/s², the stand-in's limit, is 22°) without
+        # reaching the wide frame's edge (beyond it, its border is repeated)
+        mx, my = margin or (int(0.2 * lens.width), int(0.55 * lens.height))
+        self.wide = Intrinsics(lens.width + 2 * mx, lens.height + 2 * my, lens.fx, lens.fy,
+                               lens.ppx + mx, lens.ppy + my)
+        self.world = load_world(spec, seed, self.wide)
+        drawn = self.world.camera().color
+        if (drawn.width, drawn.height, drawn.fx, drawn.ppx) != (self.wide.width, self.wide.height,
+                                                                self.wide.fx, self.wide.ppx):
+            raise UsageError(f"--tilt: the world {spec or 'built-in'} draws with its own lens "
+                             f"({drawn.width}x{drawn.height}), not the wider one it is given")
+        self.lens = lens
+        self._k = np.array([[lens.fx, 0.0, lens.ppx], [0.0, lens.fy, lens.ppy], [0.0, 0.0, 1.0]])
+        w = self.wide
+        self._k_wide_inv = np.linalg.inv(np.array([[w.fx, 0.0, w.ppx], [0.0, w.fy, w.ppy], [0.0, 0.0, 1.0]]))
+        u = (np.arange(lens.width, dtype=np.float32) - lens.ppx) / lens.fx
+        v = (np.arange(lens.height, dtype=np.float32) - lens.ppy) / lens.fy
+        self._xn, self._yn = np.meshgrid(u, v)
+
+    def camera(self) -> CameraModel:
+        return CameraModel(self.lens, self.lens)
+
+    def render(self, position_m: Vec3, yaw_rad: float, spheres: list[Sphere],
+               rotation: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[float, float, float, float]]]:
+        """As :meth:`World.render`, the camera turned by ``rotation`` (level camera's axes ->
+        the tilted camera's; None: level)."""
+        colour, depth, seen = self.world.render(position_m, yaw_rad, spheres)
+        r = np.eye(3) if rotation is None else np.asarray(rotation, float)
+        h = self._k @ r @ self._k_wide_inv
+        size = (self.lens.width, self.lens.height)
+        colour = cv2.warpPerspective(colour, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        depth = cv2.warpPerspective(depth, h, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT)
+        # Z in the turned camera = Z level / (third row of Rᵀ · the turned ray), R[:, 2] · ray
+        scale = 1.0 / (r[0, 2] * self._xn + r[1, 2] * self._yn + r[2, 2])
+        depth = np.clip(depth.astype(np.float32) * scale, 0, 65535).astype(np.uint16)
+        turned = {}
+        for oid, (u, v, radius, z) in seen.items():
+            q = h @ np.array([u, v, 1.0])
+            uu, vv = float(q[0] / q[2]), float(q[1] / q[2])
+            ray = np.array([(uu - self.lens.ppx) / self.lens.fx, (vv - self.lens.ppy) / self.lens.fy, 1.0])
+            turned[oid] = (uu, vv, radius, float(z / (r[:, 2] @ ray)))
+        return colour, depth, turned
