@@ -104,6 +104,8 @@ async def test_approaching_ball_makes_the_vehicle_evade_and_the_record_replays(
     decisions = jsonl(record.folder / "decisions.jsonl")
     assert any(d["action"] == "evade" for d in decisions)
     assert jsonl(record.folder / "latency.jsonl") and jsonl(record.folder / "telemetry.jsonl")
+    # the attitude the decision derotates by is in the record (the stand-in hovers level)
+    assert any(t["attitude_rad"] == [0.0, 0.0, 0.0] for t in jsonl(record.folder / "telemetry.jsonl"))
     out = tmp_path / "replayed"
     assert main(["replay", str(record.folder), "--out", str(out), "--no-video"]) == 0
     recorded = (record.folder / "tracks.csv").read_text()

@@ -373,6 +373,7 @@ class _TickLog:
             rec.telemetry({"connected": v.connected, "armed": v.armed, "in_air": v.in_air,
                            "mode": v.mode, "altitude_m": v.altitude_m,
                            "velocity_ned_mps": v.velocity_ned_mps, "lat_lon_deg": v.lat_lon_deg,
+                           "attitude_rad": v.attitude_rad,  # roll, pitch, yaw: what derotates
                            "engagement": out.state, "setpoint_frd_mps": out.setpoint,
                            "start_offboard": out.start_offboard, "leave_to": out.leave_to})
 
