@@ -33,6 +33,10 @@ class Intrinsics:
     ppx: float  # principal point, px
     ppy: float
 
+    def matrix(self) -> np.ndarray:
+        """The pinhole matrix K (3 x 3): camera XYZ -> homogeneous pixels."""
+        return np.array([[self.fx, 0.0, self.ppx], [0.0, self.fy, self.ppy], [0.0, 0.0, 1.0]])
+
     def deproject(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
         """Pixels and depth (m) → camera XYZ (m), shape (N, 3)."""
         x = (np.asarray(u, float) - self.ppx) / self.fx * z

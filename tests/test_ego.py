@@ -179,7 +179,7 @@ def test_unreported_static_structure_is_cleared_by_the_cameras_velocity() -> Non
     assert set(_decide(boxes, ego, reported=False, unreported_sigmas=4.0)) == {NONE}
 
 
-KM = np.array([[K.fx, 0.0, K.ppx], [0.0, K.fy, K.ppy], [0.0, 0.0, 1.0]])
+KM = K.matrix()
 
 
 def _moved(h: np.ndarray, u: float, v: float) -> tuple[float, float]:

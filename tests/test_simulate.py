@@ -39,7 +39,7 @@ def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -
 
 
 def test_a_tilting_camera_turns_the_frame_about_its_centre_and_keeps_depths_true() -> None:
-    from app.decision.ego import derotation
+    from app.decision.ego import camera_rotation
     from app.sim.world import Tilted, d435i_color
 
     lens = d435i_color(848, 480)
@@ -47,7 +47,7 @@ def test_a_tilting_camera_turns_the_frame_about_its_centre_and_keeps_depths_true
     ball = [Sphere(1, (6.0, 1.0, -6.0), 0.5, 20)]  # 6 m ahead, 1 m right, at our height
 
     def look(roll: float, pitch: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]]:
-        turn = derotation((0.0, 0.0, 0.0), (roll, pitch, 0.0), np.eye(3))
+        turn = camera_rotation((0.0, 0.0, 0.0), (roll, pitch, 0.0))
         colour, depth, seen = cam.render((0.0, 0.0, -6.0), 0.0, ball, rotation=turn)
         assert colour.shape == (480, 848, 3) and depth.shape == (480, 848)
         return colour, depth, seen[1]

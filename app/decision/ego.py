@@ -98,6 +98,15 @@ def _body_to_ned(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return rz @ ry @ rx  # ZYX Euler, as PX4 and MAVLink's ATTITUDE give them
 
 
+def camera_rotation(before_rad: tuple[float, float, float], after_rad: tuple[float, float, float]
+                    ) -> np.ndarray:
+    """R (3 x 3): a direction fixed in the world, in the camera's axes at attitude
+    ``before_rad``, into its axes at ``after_rad`` (roll, pitch, yaw rad each)."""
+    r_b = _body_to_ned(*before_rad)
+    r_a = _body_to_ned(*after_rad)
+    return np.asarray(_BODY_TO_CAMERA @ r_a.T @ r_b @ _BODY_TO_CAMERA.T, dtype=np.float64)
+
+
 def derotation(before_rad: tuple[float, float, float], after_rad: tuple[float, float, float],
                k: np.ndarray) -> np.ndarray:
     """K·R·K⁻¹: where a direction fixed in the world, seen at pixel p with the camera at
@@ -105,10 +114,7 @@ def derotation(before_rad: tuple[float, float, float], after_rad: tuple[float, f
     the image history through the camera's *rotation* only: a bank of 20° to accelerate
     sideways (4 m/s² needs tan⁻¹(4 / 9.81) = 22°) would otherwise read as a bearing rate
     tens of times an object's."""
-    r_b = _body_to_ned(*before_rad)
-    r_a = _body_to_ned(*after_rad)
-    rot = _BODY_TO_CAMERA @ r_a.T @ r_b @ _BODY_TO_CAMERA.T  # camera(before) -> camera(after)
-    return np.asarray(k @ rot @ np.linalg.inv(k), dtype=np.float64)
+    return np.asarray(k @ camera_rotation(before_rad, after_rad) @ np.linalg.inv(k), dtype=np.float64)
 
 
 @dataclass(frozen=True)

@@ -250,8 +250,7 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
     loop = asyncio.get_running_loop()
     seen = 0
     record_number: dict[int, int | None] = {}  # source frame -> frame number in the record
-    lens = decider.camera.color
-    lens_k = np.array([[lens.fx, 0.0, lens.ppx], [0.0, lens.fy, lens.ppy], [0.0, 0.0, 1.0]])
+    lens_k = decider.camera.color.matrix()
     last_attitude: list[tuple[float, float, float] | None] = [None]  # at the last frame decided on
     # per frame not yet decided on: the camera's velocity and attitude when it arrived
     motion: dict[int, tuple[EgoMotion | None, tuple[float, float, float] | None]] = {}

@@ -26,7 +26,7 @@ import numpy as np
 
 from app.camera import Intrinsics
 from app.config import Config
-from app.decision.ego import derotation
+from app.decision.ego import camera_rotation
 from app.perception.frames import Frame, FrameSource
 from app.sim.world import Renderer, Sphere, Tilted, d435i_color, load_world
 
@@ -179,7 +179,7 @@ class SimulatedCamera(FrameSource):
             vehicle = (float(pos[0]), float(pos[1]), float(pos[2]))
             if isinstance(self.world, Tilted) and self.attitude is not None:
                 roll, pitch, _ = self.attitude()
-                turn = derotation((0.0, 0.0, yaw), (roll, pitch, yaw), np.eye(3))
+                turn = camera_rotation((0.0, 0.0, yaw), (roll, pitch, yaw))
                 colour, depth, seen = self.world.render(vehicle, yaw, spheres, rotation=turn)
             else:
                 colour, depth, seen = self.world.render(vehicle, yaw, spheres)

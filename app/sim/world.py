@@ -173,7 +173,7 @@ class World:
         world_to_body = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
         rot = _BODY_TO_CAM @ world_to_body  # world -> camera
         pos = np.asarray(position_m, float)
-        k = np.array([[intr.fx, 0, intr.ppx], [0, intr.fy, intr.ppy], [0, 0, 1.0]])
+        k = intr.matrix()
 
         # sky: columns by heading
         horizon = int(math.floor(intr.ppy)) + 1  # rows above see sky (level camera)
@@ -416,7 +416,6 @@ def load_world(spec: str, seed: int, lens: Intrinsics) -> Renderer:
     return world
 
 
-
 class Tilted:
     """A camera fixed to a multirotor's body, which banks and pitches to accelerate: the
     world drawn level (its yaw only) through a lens wider by ``margin`` on every side, then
@@ -437,9 +436,8 @@ class Tilted:
             raise UsageError(f"--tilt: the world {spec or 'built-in'} draws with its own lens "
                              f"({drawn.width}x{drawn.height}), not the wider one it is given")
         self.lens = lens
-        self._k = np.array([[lens.fx, 0.0, lens.ppx], [0.0, lens.fy, lens.ppy], [0.0, 0.0, 1.0]])
-        w = self.wide
-        self._k_wide_inv = np.linalg.inv(np.array([[w.fx, 0.0, w.ppx], [0.0, w.fy, w.ppy], [0.0, 0.0, 1.0]]))
+        self._k = lens.matrix()
+        self._k_wide_inv = np.linalg.inv(self.wide.matrix())
         u = (np.arange(lens.width, dtype=np.float32) - lens.ppx) / lens.fx
         v = (np.arange(lens.height, dtype=np.float32) - lens.ppy) / lens.fy
         self._xn, self._yn = np.meshgrid(u, v)
