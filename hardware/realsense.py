@@ -56,10 +56,17 @@ class CameraLost(SourceError):
 def _rs() -> Any:
     try:
         import pyrealsense2 as rs
-    except ImportError:
+    except ModuleNotFoundError:
         raise SourceError(
             "the RealSense camera needs pyrealsense2: pip install 'midair[realsense]' "
             "(on a Pi 4, build it from librealsense's source, see docs/pi-install.md)"
+        ) from None
+    except ImportError as exc:
+        # installed, but a system library it links against is missing (a fresh Debian has no
+        # libusb-1.0.so.0): say which one, not "install pyrealsense2"
+        raise SourceError(
+            f"pyrealsense2 is installed but cannot load: {exc} "
+            "(on Debian/Ubuntu: apt-get install libusb-1.0-0)"
         ) from None
     return rs
 

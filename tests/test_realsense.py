@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-rs = pytest.importorskip("pyrealsense2")
+# installed but unloadable (no libusb-1.0 on a bare Debian) skips too, with the loader's reason
+rs = pytest.importorskip("pyrealsense2", exc_type=ImportError)
 
 from app.camera import CameraModel, Intrinsics  # noqa: E402
 from app.cli import main  # noqa: E402
@@ -143,21 +144,3 @@ def test_replay_reads_a_realsense_recording_and_decides(tmp_path: Path,
     # descent capped at PX4's 1.5 m/s, straight right gets farther in time than down-right)
     vel = [(float(r.split(",")[3]), float(r.split(",")[4])) for r in evades]
     assert all(right >= 0 and down >= 0 and right + down > 0 for right, down in vel)
-
-
-def test_the_sdk_is_only_needed_for_realsense_sources() -> None:
-    code = ("import sys; sys.modules['pyrealsense2'] = None\n"
-            "from app.runtime.sources import open_source\n"
-            "from app.errors import SourceError\n"
-            "import app.runtime.process, app.cli\n"
-            "from hardware.realsense import RealSenseSource\n"
-            "from app.config import CaptureConfig\n"
-            "try:\n    RealSenseSource(CaptureConfig())\nexcept SourceError as e:\n    print(e)\n")
-    import subprocess
-    import sys
-
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0, out.stderr
-    assert "needs pyrealsense2" in out.stdout
-
-

@@ -424,7 +424,7 @@ def test_the_realsense_sdk_plays_a_recording_under_the_sandbox(manager: Manager,
     """The camera's side of the process (librealsense, its libusb backend, the SDK's playback)
     under the unit's sandbox: `midair fly` on a RealSense recording. No D435i here: the device
     nodes themselves are the next test's."""
-    pytest.importorskip("pyrealsense2")
+    pytest.importorskip("pyrealsense2", exc_type=ImportError)
     from app.sim.px4 import SimPx4, SimState, free_udp_port
     from app.sim.synthetic import approach_scene, render
     from hardware.realsense import write_realsense_recording
