@@ -186,14 +186,6 @@ class RecognitionConfig:
     max_cluster_frac: float = param(
         0.25, "a cluster covering more of the frame than this is not an object (0-1)", gt=0, le=1
     )
-    split_fill: float = param(
-        0.0,
-        "a group of several blobs that fills less of its box than this is a chain of clutter "
-        "(parallax along the horizon, ground texture), not one object: each of its blobs that "
-        "reaches area_px alone is a cluster of its own, the rest are dropped, so that an object "
-        "the chain reaches is not swallowed (0-1; 0 = off)",
-        ge=0, lt=1,
-    )
 
 
 @dataclass(frozen=True)

@@ -106,25 +106,6 @@ def test_min_fill_rejects_a_patchwork_but_keeps_a_compact_object() -> None:
     assert [c.box for c in strict] == [(40, 40, 10, 10)]
 
 
-def test_split_fill_frees_an_object_from_a_chain_of_clutter_but_keeps_a_compact_one() -> None:
-    # a band of small specks along a horizon (each 3x2, 12 px apart: one chain at dist_px 10,
-    # filling 6 % of its box),
-    # an object of 8x8 touching the chain from below, and a compact two-blob object elsewhere
-    band = [(10 + 12 * i, 100, 3, 2) for i in range(24)]
-    obj = (40, 104, 8, 8)
-    pair = [(40, 180, 7, 7), (49, 180, 7, 7)]
-    mask = _mask(*band, obj, *pair, shape=(240, 320))
-    off = Recognizer(RecognitionConfig(area_px=40, dist_px=10))(mask)[0]
-    on = Recognizer(RecognitionConfig(area_px=40, dist_px=10, split_fill=0.1))(mask)[0]
-    # without the split the object is swallowed: one cluster spans the band, centred far off it
-    chain = [c for c in off if c.box[2] > 200]
-    assert len(chain) == 1 and abs(chain[0].x - 44) > 20
-    assert not any(c.box == obj for c in off)
-    # with it the chain is gone, the object is a cluster of its own, the compact pair untouched
-    assert sorted(c.box for c in on) == sorted([obj, (40, 180, 16, 7)])
-    assert all(c.box[2] <= 16 for c in on)
-
-
 _box = st.tuples(st.integers(0, 300), st.integers(0, 200), st.integers(1, 40), st.integers(1, 40))
 
 

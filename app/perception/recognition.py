@@ -142,24 +142,16 @@ class Recognizer:
         max_area = self.cfg.max_cluster_frac * frame_area
         for idx in groups:
             total = int(round(sum(areas[i] for i in idx)))
+            if total < self.cfg.area_px or total > max_area:
+                continue
+            cx = sum(cents[i][0] * areas[i] for i in idx) / total
+            cy = sum(cents[i][1] * areas[i] for i in idx) / total
             x0 = min(boxes[i][0] for i in idx)
             y0 = min(boxes[i][1] for i in idx)
             x1 = max(boxes[i][0] + boxes[i][2] for i in idx)
             y1 = max(boxes[i][1] + boxes[i][3] for i in idx)
-            if len(idx) > 1 and total < self.cfg.split_fill * (x1 - x0) * (y1 - y0):
-                # a chain, not an object: what stands alone in it does so
-                for i in idx:
-                    if self.cfg.area_px <= areas[i] <= max_area:
-                        bx, by, bw, bh = boxes[i]
-                        out.append(Cluster(cents[i][0], cents[i][1], (bx, by, bw, bh),
-                                           int(round(areas[i])), (blobs.contours[i],)))
-                continue
-            if total < self.cfg.area_px or total > max_area:
-                continue
             if total < self.cfg.min_fill * (x1 - x0) * (y1 - y0):
                 continue
-            cx = sum(cents[i][0] * areas[i] for i in idx) / total
-            cy = sum(cents[i][1] * areas[i] for i in idx) / total
             out.append(Cluster(cx, cy, (x0, y0, x1 - x0, y1 - y0), total,
                                tuple(blobs.contours[i] for i in idx)))
         return out
