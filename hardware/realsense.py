@@ -62,12 +62,10 @@ def _rs() -> Any:
             "(on a Pi 4, build it from librealsense's source, see docs/pi-install.md)"
         ) from None
     except ImportError as exc:
-        # installed, but a system library it links against is missing (a fresh Debian has no
-        # libusb-1.0.so.0): say which one, not "install pyrealsense2"
-        raise SourceError(
-            f"pyrealsense2 is installed but cannot load: {exc} "
-            "(on Debian/Ubuntu: apt-get install libusb-1.0-0)"
-        ) from None
+        # installed, but something it links against is missing (a fresh Debian has no
+        # libusb-1.0.so.0): say what the loader said, not "install pyrealsense2"
+        hint = " (on Debian/Ubuntu: apt-get install libusb-1.0-0)" if "libusb" in str(exc) else ""
+        raise SourceError(f"pyrealsense2 is installed but cannot load: {exc}{hint}") from None
     return rs
 
 

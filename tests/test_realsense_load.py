@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,8 +16,6 @@ _OPEN = ("from app.errors import SourceError\n"
 def _run(code: str, path: Path | None = None) -> subprocess.CompletedProcess[str]:
     env = None
     if path is not None:
-        import os
-
         env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(path), *sys.path])}
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=60, env=env)
@@ -31,14 +30,25 @@ def test_the_sdk_is_only_needed_for_realsense_sources() -> None:
     assert "needs pyrealsense2" in out.stdout
 
 
+def _fake_sdk(root: Path, message: str) -> Path:
+    """A pyrealsense2 under ``root`` whose import fails with ``message``, as an installed SDK
+    does when the loader cannot find what it links against."""
+    (root / "pyrealsense2").mkdir()
+    (root / "pyrealsense2" / "__init__.py").write_text(f"raise ImportError({message!r})\n")
+    return root
+
+
 def test_an_sdk_that_cannot_load_names_the_missing_library(tmp_path: Path) -> None:
-    # pyrealsense2 installed on a machine without libusb: its import fails as the real one does
-    fake = tmp_path / "pyrealsense2"
-    fake.mkdir()
-    (fake / "__init__.py").write_text(
-        'raise ImportError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")\n')
-    out = _run(_OPEN, tmp_path)
+    out = _run(_OPEN, _fake_sdk(tmp_path, "libusb-1.0.so.0: cannot open shared object file: "
+                                          "No such file or directory"))
     assert out.returncode == 0, out.stderr
     assert "pyrealsense2 is installed but cannot load: libusb-1.0.so.0" in out.stdout
     assert "apt-get install libusb-1.0-0" in out.stdout
     assert "needs pyrealsense2" not in out.stdout
+
+
+def test_an_sdk_that_cannot_load_for_another_reason_gets_no_libusb_advice(tmp_path: Path) -> None:
+    out = _run(_OPEN, _fake_sdk(tmp_path, "numpy.core.multiarray failed to import"))
+    assert out.returncode == 0, out.stderr
+    assert "pyrealsense2 is installed but cannot load: numpy.core.multiarray failed to import" in out.stdout
+    assert "libusb" not in out.stdout
