@@ -8,11 +8,12 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from app.config import Config
-from app.sim.world import Sphere, World, WorldStyle
+from app.sim.world import Sphere, World, WorldStyle, _noise_steps, _periodic_blur
 
 pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
@@ -126,6 +127,43 @@ def test_depth_noise_grows_with_the_square_of_the_distance_as_a_d435i() -> None:
         # Intel's D400 RMS error: z² x 0.08 / (447 px x 0.05 m) = 0.0036 z²
         assert patch.mean() == pytest.approx(z, abs=0.05)
         assert patch.std() == pytest.approx(0.08 / (447 * 0.05) * z * z, rel=0.25)
+
+
+def test_camera_noise_is_the_float_sum_pixel_for_pixel() -> None:
+    """The world adds its noise in integers (saturating), with the float sum only where a
+    fraction within 2^-12 of 1 may round up: the same pixels as clip(grey + noise) in float32,
+    on noise built to hold such fractions, whole numbers, and sums beyond 0 and 255."""
+    world = World(WorldStyle(seed=6, noise_std=1.5))
+    rng = np.random.default_rng(1)
+    grey = rng.integers(0, 256, (world.intrinsics.height, world.intrinsics.width), dtype=np.uint8)
+    grey[:5] = 0
+    grey[5:10] = 255
+    noise = world.noise[0].copy()
+    edge = np.nextafter(np.float32(1.0), np.float32(0.0))  # the float just below 1
+    noise[::7, ::5] = edge  # 100 + 0.99999994 rounds to 101.0 in float32
+    noise[3::11, ::3] = -edge
+    noise[1::13, 2::7] = np.float32(2.0)
+    noise[2::17, 1::9] = np.float32(-300.0)
+    world.noise[0] = noise
+    world._noise_steps[0] = _noise_steps(noise)
+    want = np.clip(grey.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+    np.testing.assert_array_equal(world._add_noise(grey, 0), want)
+    # the noise does hold sums that the whole part alone gets wrong (the case the float fixes)
+    whole = np.clip(grey.astype(np.int64) + np.floor(noise.astype(np.float64)), 0, 255)
+    assert (whole != want).sum() > 100
+
+
+def test_ground_and_sky_textures_tile_without_a_seam() -> None:
+    """The blurred noise the ground and clouds are made of wraps round: a blur of the texture
+    tiled 3 x 3 has, in its centre, the texture itself."""
+    rng = np.random.default_rng(2)
+    for shape, sigma, rows_too in (((96, 80), 2.0, True), ((20, 200), 3.0, False), ((16, 16), 1.5, True)):
+        noise = rng.normal(0, 1, shape)
+        got = _periodic_blur(noise, sigma, rows_too)
+        tiled = cv2.GaussianBlur(np.tile(noise, (3 if rows_too else 1, 3)), (0, 0), sigma)
+        h, w = shape
+        want = tiled[h:2 * h, w:2 * w] if rows_too else tiled[:, w:2 * w]
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
 def test_turning_moves_the_sky_and_sidestepping_shows_parallax() -> None:
