@@ -15,6 +15,7 @@ A homography ``H_a_b`` maps pixel coordinates of frame a to those of frame b.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -395,9 +396,7 @@ class MotionDetector:
         fx = fy = None
         age0 = olds[0][0]
         for age, small, hh in olds:
-            warped = cur.copy()
-            cv2.warpPerspective(small, hh, (w, h), dst=warped, flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_TRANSPARENT)
+            warped = _warp_onto(small, hh, cur)
             if fx is None or fy is None:
                 # 9 px windows over 3 levels: 1.2 ms for 26 x 15 tiles here, a 17 px one 2.9
                 moved, status, _err = cv2.calcOpticalFlowPyrLK(
@@ -728,10 +727,64 @@ def _compensated_diff(src: np.ndarray, dst: np.ndarray, h: np.ndarray) -> np.nda
 
     Pixels with no source keep dst's value, so their difference is 0, not a false edge.
     """
-    warped = dst.copy()
-    cv2.warpPerspective(src, h, (dst.shape[1], dst.shape[0]), dst=warped, flags=cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_TRANSPARENT)
-    return cv2.absdiff(dst, warped)
+    return cv2.absdiff(dst, _warp_onto(src, h, dst))
+
+
+def _warp_onto(src: np.ndarray, h: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """``src`` warped bilinearly by ``h`` (src px -> dst px) onto a copy of ``dst``, with
+    OpenCV's transparent border (where a pixel has no source, ``dst``'s own value stays).
+
+    The transparent border takes the whole warp off OpenCV's vectorised path (1.05 against
+    0.63 ms at 640 x 480 here, 0.29 against 0.15 at half). So the frame is warped with a
+    constant border, which gives the same pixels wherever a pixel's whole bilinear
+    neighbourhood lies inside ``src`` (but for the grey level the two paths round differently
+    at a few pixels), and only the strips outside the largest upright rectangle where that
+    holds (a few px wide for a frame-to-frame motion) are warped with the transparent border.
+    A homography that sends a corner behind the camera, or turns the frame so that no such
+    rectangle is found, is warped transparently whole.
+    """
+    rows, cols = src.shape[:2]
+    width, height = dst.shape[1], dst.shape[0]
+    hom = np.asarray(h, np.float64)
+    (a, b, c), (d, e, f), (g, k, m) = hom.tolist()
+    # a pixel is interpolated from inside where its source lies in [0, cols - 1) x [0, rows - 1);
+    # the rectangle is found from that region shrunk by a pixel, against rounding
+    quad = []  # TL, TR, BR, BL of the region, in dst px
+    for x, y in ((1.0, 1.0), (cols - 2.0, 1.0), (cols - 2.0, rows - 2.0), (1.0, rows - 2.0)):
+        w = g * x + k * y + m
+        if w < 1e-6:
+            quad = []
+            break
+        quad.append(((a * x + b * y + c) / w, (d * x + e * y + f) / w))
+    x0 = x1 = y0 = y1 = 0
+    if quad and cols >= 4 and rows >= 4:
+        (tlx, tly), (trx, try_), (brx, bry), (blx, bly) = quad
+        x0 = min(width, max(0, math.ceil(max(tlx, blx))))
+        x1 = max(x0, min(width, math.floor(min(trx, brx)) + 1))
+        y0 = min(height, max(0, math.ceil(max(tly, try_))))
+        y1 = max(y0, min(height, math.floor(min(bry, bly)) + 1))
+        poly = np.array(quad, np.float32)
+        inner = ((x0, y0), (x1 - 1, y0), (x1 - 1, y1 - 1), (x0, y1 - 1))
+        if x1 <= x0 or y1 <= y0 or min(cv2.pointPolygonTest(poly, (float(x), float(y)), False)
+                                       for x, y in inner) < 0:
+            x0 = x1 = y0 = y1 = 0
+    if x1 <= x0:
+        out = dst.copy()
+        cv2.warpPerspective(src, hom, (width, height), dst=out, flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_TRANSPARENT)
+        return out
+    out = cv2.warpPerspective(src, hom, (width, height), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT)
+    strips = ((0, 0, width, y0), (0, y1, width, height), (0, y0, x0, y1), (x1, y0, width, y1))
+    for sx0, sy0, sx1, sy1 in strips:
+        if sx1 <= sx0 or sy1 <= sy0:
+            continue
+        strip = dst[sy0:sy1, sx0:sx1].copy()  # a copy: a full-width strip would be a view of dst
+        shift = np.array([[1.0, 0.0, -sx0], [0.0, 1.0, -sy0], [0.0, 0.0, 1.0]]) @ hom
+        cv2.warpPerspective(src, shift, (sx1 - sx0, sy1 - sy0), dst=strip, flags=cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_TRANSPARENT)
+        out[sy0:sy1, sx0:sx1] = strip
+    return out
 
 
 def _shift_tiles(diff: np.ndarray, h: np.ndarray) -> np.ndarray | None:
