@@ -749,7 +749,7 @@ def _warp_onto(src: np.ndarray, h: np.ndarray, dst: np.ndarray) -> np.ndarray:
     (a, b, c), (d, e, f), (g, k, m) = hom.tolist()
     # a pixel is interpolated from inside where its source lies in [0, cols - 1) x [0, rows - 1);
     # the rectangle is found from that region shrunk by a pixel, against rounding
-    quad = []  # TL, TR, BR, BL of the region, in dst px
+    quad: list[tuple[float, float]] = []  # TL, TR, BR, BL of the region, in dst px
     for x, y in ((1.0, 1.0), (cols - 2.0, 1.0), (cols - 2.0, rows - 2.0), (1.0, rows - 2.0)):
         w = g * x + k * y + m
         if w < 1e-6:
