@@ -443,6 +443,13 @@ class DecisionConfig:
         1.0, "the predicted passage is judged this many standard errors towards the vehicle "
         "(worst case over the estimate's uncertainty)", ge=0,
     )
+    image_max_passage_std_m: float = param(
+        1.0, "response trigger: an object seen in the image only whose passage's standard error "
+        "(at the smallest plausible size) exceeds this does not trigger yet: the image cannot say "
+        "where it passes, and the worst case over so wide an error is always a hit; m, 0 = off "
+        "(1.0: about the widest clearance, 0.25 + 1.0 / 2 + 0.2 m)",
+        ge=0,
+    )
     looming_window_s: float = param(
         1.0, "image estimate: the course in object sizes (1/angular size and bearing/angular size, "
         "both linear in time on a straight approach) is fitted over this window, s (open-loop "

@@ -313,3 +313,29 @@ def test_a_young_depth_tracks_time_left_is_not_long_for_a_fast_object() -> None:
     off = np.abs(np.array(ratios) - 1.0)
     assert float(np.median(off)) < 0.10
     assert float(np.mean(off < 0.25)) >= 0.9
+
+
+def test_an_image_only_passage_known_to_metres_does_not_trigger_with_the_cap() -> None:
+    """An object seen in the image only, urgent (τ 0.6 s), heading 3 sizes wide, whose passage
+    has a standard error of 20 sizes (3 m at the smallest plausible size): the worst case over
+    so wide an error is a hit, so without the cap it triggers; with ``image_max_passage_std_m``
+    1 m it does not (the image cannot say where it passes), while the same object with its
+    passage known to 2 sizes (0.3 m) and heading at the vehicle still does. A fused object
+    (range known) is not capped."""
+    from dataclasses import replace
+
+    capped = replace(CFG, image_max_passage_std_m=1.0)
+    vague = image_obj(0.6, (3.0, 0.0), miss_std=20.0)
+    sure = image_obj(0.6, (0.5, 0.0), miss_std=2.0)
+    assert CFG.image_max_passage_std_m == 1.0  # the default
+    assert DecisionMaker(replace(CFG, image_max_passage_std_m=0.0), CAM).assess(vague) is not None
+    assert DecisionMaker(capped, CAM).assess(vague) is None
+    assert DecisionMaker(capped, CAM).assess(sure) is not None
+    fused = replace(vague, source="fused", fresh=True, measured_s=0.0)
+    assert DecisionMaker(capped, CAM).assess(fused) is not None
+    # over the frames the trigger confirms on: the vague one never commands, the sure one does
+    def seen(miss: tuple[float, float], std: float):
+        return lambda s, t: [image_obj(0.6 - s, miss, miss_std=std, t=t)]
+
+    assert frames(DecisionMaker(capped, CAM), seen((3.0, 0.0), 20.0)).action == NONE
+    assert frames(DecisionMaker(capped, CAM), seen((0.5, 0.0), 2.0)).action == EVADE

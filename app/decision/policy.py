@@ -520,6 +520,9 @@ class DecisionMaker:
             # no range and perception calls it clutter: the image alone won't do, unless its
             # growth is beyond doubt (τ/σ_τ = expansion/σ_expansion, to first order)
             return None
+        if (o.source == "image" and c.image_max_passage_std_m > 0 and o.miss_sizes_std is not None
+                and o.miss_sizes_std * c.object_diameter_min_m > c.image_max_passage_std_m):
+            return None  # where it passes is unknown to the image alone: wait for a fit or a range
         if o.static_miss_m is not None and o.static_miss_std_m is not None:
             widest = c.vehicle_radius_m + c.object_diameter_max_m / 2 + c.clearance_margin_m
             if o.static_miss_m - STATIC_CLEAR_SIGMAS * o.static_miss_std_m > widest:
