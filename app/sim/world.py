@@ -380,8 +380,8 @@ def shaped(seed: int, lens: Intrinsics) -> World:
 
 def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np.ndarray:
     """Gaussian-blurred noise that tiles without a seam: blurred with a wrapped margin wider
-    than the kernel (the same pixels as blurring a 3 x 3 tiling and keeping its centre, at a
-    tenth of the cost for the 1024 x 1024 ground)."""
+    than the kernel (the same pixels as blurring a 3 x 3 tiling and keeping its centre,
+    without blurring nine times the texture)."""
     h, w = noise.shape
     m = int(math.ceil(4 * sigma)) + 1  # OpenCV's kernel for a float image reaches 4 sigma
     mr = min(m, h) if rows_too else 0
