@@ -129,6 +129,22 @@ def test_depth_noise_grows_with_the_square_of_the_distance_as_a_d435i() -> None:
         assert patch.std() == pytest.approx(0.08 / (447 * 0.05) * z * z, rel=0.25)
 
 
+def test_depth_reaches_twenty_metres_with_the_error_it_has_there() -> None:
+    # Stereo has no range limit of its own: at 16 m a D435i still measures, with 0.9 m of
+    # error; past the world's 20 m nothing comes back (0: no data)
+    world = World(WorldStyle(seed=3))
+    _c, depth, seen = world.render((0.0, 0.0, -6.0), 0.0, [Sphere(1, (16.0, 0.0, -6.0), 3.0, 30)])
+    u, v, r, _z = seen[1]
+    patch = depth[int(v - r / 2):int(v + r / 2), int(u - r / 2):int(u + r / 2)].astype(float) / 1000
+    measured = patch[patch > 0]
+    assert measured.size > 0.9 * patch.size
+    assert np.median(measured) == pytest.approx(16.0, abs=0.3)
+    assert measured.std() == pytest.approx(0.0036 * 16.0**2, rel=0.3)
+    _c, depth, seen = world.render((0.0, 0.0, -6.0), 0.0, [Sphere(1, (25.0, 0.0, -6.0), 3.0, 30)])
+    u, v, r, _z = seen[1]
+    assert (depth[int(v - r / 2):int(v + r / 2), int(u - r / 2):int(u + r / 2)] == 0).all()
+
+
 def test_camera_noise_is_the_float_sum_pixel_for_pixel() -> None:
     """The world adds its noise in integers (saturating), with the float sum only where a
     fraction within 2^-12 of 1 may round up: the same pixels as clip(grey + noise) in float32,

@@ -10,7 +10,7 @@ What is drawn, far to near, and why:
 - **sky**: a brightness gradient with clouds on a cylinder around the vehicle (no parallax,
   turns with the heading), no depth (the D435i sees nothing there);
 - **ground**: a textured plane drawn through the homography a plane induces, with its true
-  depth per pixel (0 beyond ``max_depth_m``, as the D435i returns no data);
+  depth per pixel (0 beyond ``max_depth_m``, 20 m, where a D435i's error reaches 1.4 m);
 - **clutter**: trees (vertical slabs) at fixed places, which move against the ground and
   the sky as the vehicle moves: the parallax a single homography cannot explain;
 - **objects**: spheres (ball, bird, drone sized) with their depth;
@@ -92,7 +92,11 @@ class World:
 
     style: WorldStyle = field(default_factory=WorldStyle)
     intrinsics: Intrinsics = field(default_factory=lambda: Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5))
-    max_depth_m: float = 10.0  # D435i: no useful depth beyond this
+    # Stereo has no range limit of its own (Intel's D400 tuning guide: at disparity shift 0
+    # the farthest depth is unbounded); what limits it is the error, σ(z) above, 1.4 m at
+    # 20 m. The world returns depth to 20 m, the far end of what a decision can use (issue
+    # 18: 15-20 m), not the 10 m where Intel's datasheets stop quoting accuracy.
+    max_depth_m: float = 20.0
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.style.seed)
