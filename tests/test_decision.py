@@ -362,7 +362,8 @@ def _fused_commands(reported: bool, range_rate: float | None, rate_std: float = 
         o = ObjectState(7, (0.0, 0.0, 15.0 * tau / 0.8), t, True, 15.0 / 0.8, tau, (0.0, 0.0), source="fused",
                         tau_s=tau, tau_std_s=0.1, miss_sizes=(0.0, 0.0), miss_sizes_std=0.2,
                         diameter_m=0.4, seen_s=t, reported=reported,
-                        range_rate_mps=range_rate, range_rate_std_mps=None if range_rate is None else rate_std)
+                        range_rate_mps=range_rate,
+                        range_rate_std_mps=None if range_rate is None else rate_std)
         actions.append(dm.decide_response([dataclasses.replace(o)], t, ALT).action)
     return actions
 
