@@ -240,9 +240,13 @@ class _Track3D:
         passage erred by 0.30 m, median, against 0.02 m along the ray, tests/test_decision.py.)"""
         s = self.cfg.kalman_measurement_std_m
         z = xyz[2]
-        sz = max(s, self.cfg.depth_rms_per_m2 * z * z)  # stereo error grows with z²
+        sz = self._range_std(z)
         ray = np.array([xyz[0] / z, xyz[1] / z, 1.0]) if z > 0 else np.array([0.0, 0.0, 1.0])
         return np.diag([s * s, s * s, 0.0]) + sz * sz * np.outer(ray, ray)
+
+    def _range_std(self, z: float) -> float:
+        """The D435i's range error at ``z`` m (it grows with z²), never below the floor, m."""
+        return max(self.cfg.kalman_measurement_std_m, self.cfg.depth_rms_per_m2 * z * z)
 
     def update(self, xyz: tuple[float, float, float], t_s: float) -> None:
         self.kf.update(np.array([[xyz[0]], [xyz[1]], [xyz[2]]]), R=self.measurement_cov(xyz))
@@ -266,9 +270,7 @@ class _Track3D:
         if sxx <= 0:
             return None
         slope = float(dt @ (zs - zs.mean())) / sxx
-        s = self.cfg.kalman_measurement_std_m
-        sigma = max(s, self.cfg.depth_rms_per_m2 * float(zs.mean()) ** 2)
-        return -slope, sigma / math.sqrt(sxx)
+        return -slope, self._range_std(float(zs.mean())) / math.sqrt(sxx)
 
     def state(self, track_id: int, t_s: float) -> ObjectState:
         x = self.kf.x[:, 0]
