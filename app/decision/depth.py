@@ -6,7 +6,10 @@ the object's colour box is mapped into the depth image for the nearest and farth
 trusted depth (a small region of interest), the valid depth pixels there are projected into
 the colour image with the calibration, and those landing on the object's *blob* pixels
 (not its whole box) give the distance by a low percentile (the near surface; background
-bleeding through a loose blob is farther and is discounted).
+bleeding through a loose blob is farther and is discounted), and the bearing by where those
+of them at that distance lie (not the blob's centre: a frame difference's blob holds the
+object's old place too, and a blob merged with the ground or a tree behind it is centred
+between the two).
 
 Depth 0 is "no data", never "zero metres"; depths outside the trusted range are dropped.
 """
@@ -20,12 +23,20 @@ import numpy as np
 from app.camera import CameraModel
 from app.perception.recognition import Cluster
 
+# The near surface: depth points within this many range errors of the object's distance ...
+NEAR_BAND_SIGMAS = 3.0
+# ... the error being at least this near by, where z² is small: an object's own near surface
+# spans a few centimetres of depth, and the D435i errs by under 2 % at 2 m (Intel's D400
+# datasheet), m
+NEAR_BAND_FLOOR_M = 0.1
+
 
 @dataclass(frozen=True)
 class ObjectDepth:
     z_m: float  # distance along the colour camera's optical axis, m
-    xyz_m: tuple[float, float, float]  # the cluster centre deprojected at z_m, colour camera XYZ, m
+    xyz_m: tuple[float, float, float]  # the near surface's centre at z_m, colour camera XYZ, m
     pixels: int  # depth pixels that landed on the blob
+    near_pixels: int = 0  # of them, those at the object's distance (the bearing's)
 
 
 def object_depth(
@@ -36,8 +47,13 @@ def object_depth(
     max_m: float,
     percentile: float,
     min_pixels: int,
+    rms_per_m2: float = 0.0,
 ) -> ObjectDepth | None:
-    """The object's distance, or None when too few trusted depth pixels land on its blob."""
+    """The object's distance, or None when too few trusted depth pixels land on its blob.
+
+    Its position: the mean bearing of the blob's depth points within the range error of that
+    distance (``NEAR_BAND_SIGMAS`` x max(``NEAR_BAND_FLOOR_M``, ``rms_per_m2`` · z²)), at that
+    distance; the blob's centre when fewer than ``min_pixels`` are."""
     roi = _depth_roi(cluster.box, cam, min_m, max_m, depth.shape)
     if roi is None:
         return None
@@ -59,9 +75,17 @@ def object_depth(
     on_blob[inside] = mask[mv[inside], mu[inside]] > 0
     if on_blob.sum() < min_pixels:
         return None
-    z_obj = float(np.percentile(pts_c[on_blob, 2], percentile))
-    xyz = cam.color.deproject(np.array([cluster.x]), np.array([cluster.y]), np.array([z_obj]))[0]
-    return ObjectDepth(z_obj, (float(xyz[0]), float(xyz[1]), float(xyz[2])), int(on_blob.sum()))
+    pts = pts_c[on_blob]
+    z_obj = float(np.percentile(pts[:, 2], percentile))
+    band = NEAR_BAND_SIGMAS * max(NEAR_BAND_FLOOR_M, rms_per_m2 * z_obj * z_obj)
+    near = pts[np.abs(pts[:, 2] - z_obj) <= band]
+    if len(near) >= min_pixels:
+        bx_, by_ = float(np.mean(near[:, 0] / near[:, 2])), float(np.mean(near[:, 1] / near[:, 2]))
+        xyz = (bx_ * z_obj, by_ * z_obj, z_obj)
+    else:
+        c = cam.color.deproject(np.array([cluster.x]), np.array([cluster.y]), np.array([z_obj]))[0]
+        xyz = (float(c[0]), float(c[1]), float(c[2]))
+    return ObjectDepth(z_obj, xyz, int(on_blob.sum()), len(near))
 
 
 def _depth_roi(

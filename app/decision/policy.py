@@ -383,7 +383,7 @@ class DecisionMaker:
             if (depth is not None and t.matched and t.cluster is not None
                     and t.confidence >= c.min_track_confidence):
                 meas = object_depth(t.cluster, depth, self.camera, c.min_range_m, c.max_range_m,
-                                    c.depth_percentile, c.min_depth_pixels)
+                                    c.depth_percentile, c.min_depth_pixels, c.depth_rms_per_m2)
             tr = self._tracks.get(t.track_id)
             if meas is not None and all(math.isfinite(v) for v in meas.xyz_m):
                 if tr is None:
