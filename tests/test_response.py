@@ -281,6 +281,41 @@ def test_where_the_images_passage_contradicts_the_depth_tracks_the_depth_track_d
     assert dm.assess(near) is not None
 
 
+def test_a_blob_wider_than_any_plausible_object_does_not_say_where_it_passes() -> None:
+    """Depth puts the object 9 m off, passing 0.4 m to its left; its blob is 0.15 rad wide,
+    1.35 m at that range (merged with the ground behind it), and its course says 0.2 m to the
+    right, within 0.05 m. No object the configuration allows is that wide: the fused passage
+    is the depth track's, for the largest plausible object, and the escape goes right, away
+    from it (the blob's course would send it left, into it). The same image with a blob
+    0.03 rad wide (0.27 m) is one object, and its course is taken."""
+    from app.decision.looming import ImageEstimate
+
+    z, tau = 9.0, 1.0
+    dm = DecisionMaker(CFG, CAM)
+    depth = ObjectState(1, (-2.0, 0.0, z), 0.0, True, z / tau, tau, (-0.4, 0.0), tau_s=tau,
+                        tau_std_s=0.1, crossing_std_m=0.3, closing_std_mps=1.0)
+
+    def image(size_rad: float) -> ImageEstimate:
+        d = size_rad * z
+        p, passage = (-2.0, 0.0, z), (0.2, 0.0)
+        v = ((passage[0] - p[0]) / tau, 0.0, -z / tau)
+        return ImageEstimate(0.0, 20, (p[0] / z, 0.0), (v[0] / z, 0.0), size_rad, 1 / tau, 0.05, tau, 0.05,
+                             (passage[0] / d, 0.0), 0.05 / d, 0.0,
+                             tuple(c / d for c in p), tuple(c / d for c in v))  # type: ignore[arg-type]
+
+    merged = dm._fuse(depth, image(0.15), 1)
+    assert merged.source == "fused" and merged.tau_s == pytest.approx(tau)
+    assert merged.course_sizes is None and merged.miss_sizes is None
+    assert merged.diameter_m == pytest.approx(CFG.object_diameter_max_m)
+    (_, passage, _std), = merged.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert passage[:2] == pytest.approx((-0.4, 0.0))
+    assert dm.assess(merged) is not None  # 0.4 m off: a threat
+    escape = dm._escape([merged], None, True)
+    assert escape is not None and escape[0] > 0  # right: away from the depth track's passage
+    one = DecisionMaker(CFG, CAM)._fuse(depth, image(0.03), 1)
+    assert one.course_sizes is not None and one.diameter_m == pytest.approx(0.27)
+
+
 def test_a_young_depth_tracks_time_left_is_not_long_for_a_fast_object() -> None:
     """A bird 9 m off closing at 11 m/s and crossing at 4 m/s, measured with the D435i's depth
     noise (sigma 0.0036 z^2: 0.29 m at 9 m) for 8 frames (0.27 s): its depth track's time to

@@ -456,6 +456,15 @@ class DecisionMaker:
             tau, tau_std = e.tau_s, e.tau_std_s
         diameter = o.z_m * e.size_rad if o.z_m > 0 else None
         miss, miss_std = e.miss_sizes, e.miss_sizes_std
+        if diameter is not None and diameter > self.cfg.object_diameter_max_m:
+            # A blob larger at its range than any plausible object is not one object (merged
+            # with the ground or a tree behind it, or with its own ghost): its course is the
+            # blob's, not the object's; the depth track (bearing from the near surface) stays.
+            # Open loop, crossing sets: 6 of the 14 first evasions towards the passage had
+            # such a blob (18 of 131 commands), 1.1-14 m "wide".
+            return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
+                                       diameter_m=self.cfg.object_diameter_max_m,
+                                       seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
         if miss is None and tau is not None and tau > 0 and tau_std is not None:
             # no looming yet (a crossing object closes slowly) but depth gives τ: the passage
             # from the image's bearing rate with the depth's τ (X_c / D = τ · b' / θ)
