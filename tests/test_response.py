@@ -316,6 +316,20 @@ def test_a_blob_wider_than_any_plausible_object_does_not_say_where_it_passes() -
     assert one.course_sizes is not None and one.diameter_m == pytest.approx(0.27)
 
 
+def test_a_close_object_with_no_passage_yet_is_escaped_away_from_where_it_is() -> None:
+    """First measured 0.7 m off, to the left and below, its depth track too young to say it
+    closes: the paper's distance rule makes it a threat, and nothing says where it passes.
+    The escape goes up and right, away from where it is, in each quadrant; with the altitude
+    floor, only sideways."""
+    for x, y in ((-0.47, 0.27), (0.4, 0.3), (-0.3, -0.4), (0.35, -0.2)):
+        o = ObjectState(1, (x, y, 0.7), 0.0, True, 0.0, None)
+        assert o.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m) == []
+        cmd = DecisionMaker(CFG, CAM).decide_response([o], 0.0, ALT)
+        assert cmd.action == EVADE and cmd.right_mps * x < 0 and cmd.down_mps * y < 0, (x, y, cmd)
+        low = DecisionMaker(CFG, CAM).decide_response([o], 0.0, 0.5)
+        assert low.action == EVADE and low.right_mps * x < 0 and low.down_mps <= 0
+
+
 def test_a_young_depth_tracks_time_left_is_not_long_for_a_fast_object() -> None:
     """A bird 9 m off closing at 11 m/s and crossing at 4 m/s, measured with the D435i's depth
     noise (sigma 0.0036 z^2: 0.29 m at 9 m) for 8 frames (0.27 s): its depth track's time to

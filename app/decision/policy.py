@@ -710,6 +710,14 @@ class DecisionMaker:
 
         if latched is not None and allowed(latched):
             return latched  # changes only once it moves towards a passage beyond the doubt
+        if not any(o.passages(c.object_diameter_min_m, c.object_diameter_max_m) for o in threats):
+            # Nothing says where any of them passes (the paper's distance rule on a depth track
+            # too young to close): away from where the nearest is now, as the paper does, not
+            # the first direction of the list (closed loop, seed 41: an object first measured
+            # 0.96 m off, 0.1 s before it passed, was escaped down-right, into its passage)
+            x, y = threats[0].xyz_m[0], threats[0].xyz_m[1]
+            d = away_from(x, y)
+            return d if can_descend or d[1] <= 0 else (d[0] / abs(d[0]), 0.0)
 
         def score(d: tuple[float, float]) -> float:
             worst = math.inf
