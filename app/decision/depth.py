@@ -32,6 +32,12 @@ NEAR_BAND_SIGMAS = 3.0
 NEAR_BAND_FLOOR_M = 0.1
 
 
+def range_error_m(z_m: float, rms_per_m2: float, floor_m: float) -> float:
+    """The D435i's range error at ``z_m`` (it grows as ``rms_per_m2`` · z², Intel's D400 RMS
+    error formula), never below ``floor_m``, m."""
+    return max(floor_m, rms_per_m2 * z_m * z_m)
+
+
 @dataclass(frozen=True)
 class ObjectDepth:
     z_m: float  # distance along the colour camera's optical axis, m
@@ -83,7 +89,7 @@ def object_depth(
         return None
     pts = pts_c[on_blob]
     z_obj = float(np.percentile(pts[:, 2], percentile))
-    band = NEAR_BAND_SIGMAS * max(NEAR_BAND_FLOOR_M, rms_per_m2 * z_obj * z_obj)
+    band = NEAR_BAND_SIGMAS * range_error_m(z_obj, rms_per_m2, NEAR_BAND_FLOOR_M)
     near = pts[np.abs(pts[:, 2] - z_obj) <= band]
     bear = near[:, :2] / near[:, 2:3]
     spread = math.inf

@@ -41,7 +41,7 @@ from filterpy.kalman import KalmanFilter
 
 from app.camera import CameraModel
 from app.config import DecisionConfig, DetectionConfig, avoid_distance_m
-from app.decision.depth import object_depth
+from app.decision.depth import object_depth, range_error_m
 from app.decision.ego import EgoMotion, static_fit
 from app.decision.looming import ImageEstimate, LoomingEstimator
 from app.decision.response import ResponseModel
@@ -252,7 +252,7 @@ class _Track3D:
 
     def _range_std(self, z: float) -> float:
         """The D435i's range error at ``z`` m (it grows with z²), never below the floor, m."""
-        return max(self.cfg.kalman_measurement_std_m, self.cfg.depth_rms_per_m2 * z * z)
+        return range_error_m(z, self.cfg.depth_rms_per_m2, self.cfg.kalman_measurement_std_m)
 
     def update(self, xyz: tuple[float, float, float], t_s: float) -> bool:
         """Take a measurement, unless it lies beyond the gate (``GATE_CHI2`` on the innovation's
@@ -456,6 +456,7 @@ class DecisionMaker:
         """The depth track's state with the image's looming: time to the passage by inverse
         variance of the two, the passage from the image's bearing rate scaled by the size the
         range gives (a depth velocity is too noisy at range to aim by)."""
+        seen = max(o.seen_s, self._seen.get(tid, -math.inf))  # matched in the image counts too
         if e is not None and e.tau_s is not None and e.tau_s > 0 and o.z_m / e.tau_s > MAX_CLOSING_MPS:
             e = None  # the range says its looming is impossible: a blob's size jumped, not the object
         if (e is not None and e.tau_s is not None and e.tau_std_s is not None and e.tau_s > 0
@@ -470,7 +471,7 @@ class DecisionMaker:
             if abs(v_img - o.closing_mps) > CLOSING_SIGMAS * math.hypot(s_img, o.closing_std_mps):
                 e = None
         if e is None or not o.fresh:
-            return dataclasses.replace(o, seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
+            return dataclasses.replace(o, seen_s=seen)
         tau, tau_std = o.tau_s, o.tau_std_s
         if e.tau_s is not None and e.tau_std_s is not None:
             # Looming's τ, not the depth track's: the depth velocity starts from rest (or
@@ -478,7 +479,6 @@ class DecisionMaker:
             # (an inverse-variance blend pulled τ 0.2-0.4 s late in the closed loop).
             tau, tau_std = e.tau_s, e.tau_std_s
         diameter = o.z_m * e.size_rad if o.z_m > 0 else None
-        miss, miss_std = e.miss_sizes, e.miss_sizes_std
         if diameter is not None and diameter > self.cfg.object_diameter_max_m:
             # A blob larger at its range than any plausible object is not one object (merged
             # with the ground or a tree behind it, or with its own ghost): its course is the
@@ -486,8 +486,8 @@ class DecisionMaker:
             # Open loop, crossing sets: 6 of the 14 first evasions towards the passage had
             # such a blob (18 of 131 commands), 1.1-14 m "wide".
             return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
-                                       diameter_m=self.cfg.object_diameter_max_m,
-                                       seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
+                                       diameter_m=self.cfg.object_diameter_max_m, seen_s=seen)
+        miss, miss_std = e.miss_sizes, e.miss_sizes_std
         if miss is None and tau is not None and tau > 0 and tau_std is not None:
             # no looming yet (a crossing object closes slowly) but depth gives τ: the passage
             # from the image's bearing rate with the depth's τ (X_c / D = τ · b' / θ)
@@ -496,8 +496,7 @@ class DecisionMaker:
                                   math.hypot(*miss) * tau_std / tau)
         fused = dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
                                     miss_sizes=miss, miss_sizes_std=miss_std,
-                                    diameter_m=diameter, course_sizes=_course(e),
-                                    seen_s=max(o.seen_s, self._seen.get(tid, -math.inf)))
+                                    diameter_m=diameter, course_sizes=_course(e), seen_s=seen)
         if o.crossing_m is not None and diameter is not None and (miss is not None or fused.course_sizes):
             # Two passages, the image's (its course in sizes at the size the range gives) and
             # the depth track's (bearing x depth, tracked): the more precise is taken, and where
@@ -740,7 +739,7 @@ class DecisionMaker:
             # 0.96 m off, 0.1 s before it passed, was escaped down-right, into its passage)
             x, y = threats[0].xyz_m[0], threats[0].xyz_m[1]
             d = away_from(x, y)
-            return d if can_descend or d[1] <= 0 else (d[0] / abs(d[0]), 0.0)
+            return d if can_descend or d[1] <= 0 else (math.copysign(1.0, d[0]), 0.0)
 
         def score(d: tuple[float, float]) -> float:
             worst = math.inf
