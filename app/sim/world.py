@@ -149,9 +149,8 @@ class World:
         inside = np.ones(rows, bool)
         for ex, ey in ends:
             inside &= (ex - ox >= 1) & (ex - ox <= 3 * n - 2) & (ey - oy >= 1) & (ey - oy <= 3 * n - 2)
-        first = rows  # the first row from which every row below is inside
-        while first > 0 and inside[first - 1]:
-            first -= 1
+        outside = np.flatnonzero(~inside)
+        first = int(outside[-1]) + 1 if len(outside) else 0  # every row from here down is inside
         out = np.empty((rows, w), np.uint8)
         if first < rows:
             shift = texel_to_px @ np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]])
@@ -254,6 +253,9 @@ class World:
 
         colour = cv2.cvtColor(self._add_noise(grey, self._k % len(self.noise)), cv2.COLOR_GRAY2BGR)
         self._k += 1
+        # rows above `depth_top` hold no depth (sky): they come back 0 as they are; the rest
+        # is worked in place (a frame's temporaries cost as much as the arithmetic here)
+        band = depth[depth_top:]
         if self.style.depth_subpixel > 0:
             # Stereo errs in disparity (d = f B / z), by about `subpixel` px: to first order
             # σ_z = z² subpixel / (f B), the formula above; a far surface (d → 0) stays far
@@ -264,16 +266,14 @@ class World:
             # 0 comes back at infinity or behind the camera, out of the range kept below.
             fb = D435I_DEPTH_FX_PX * D435I_BASELINE_M
             with np.errstate(divide="ignore"):
-                disparity = fb / depth[depth_top:]
-                disparity += window
-                depth[depth_top:] = fb / disparity
-        # rows above `depth_top` hold no depth (sky): they come back 0 as they are
-        band = depth[depth_top:]
-        kept = np.zeros_like(band)  # the range the D435i returns, 0 elsewhere
-        cv2.copyTo(band, cv2.inRange(band, 0.2, self.max_depth_m), kept)
-        kept *= 1000.0
+                np.divide(fb, band, out=band)  # disparity
+                band += window
+                np.divide(fb, band, out=band)  # depth again
+        kept = cv2.inRange(band, 0.2, self.max_depth_m)  # the range the D435i returns, 0 elsewhere
+        band *= 1000.0
         out = np.zeros((h, w), np.uint16)
-        out[depth_top:] = kept
+        with np.errstate(invalid="ignore"):  # what is out of range (inf, nan) is not kept
+            cv2.copyTo(band.astype(np.uint16), kept, out[depth_top:])
         return colour, out, seen
 
     def _add_noise(self, grey: np.ndarray, i: int) -> np.ndarray:
