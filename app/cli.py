@@ -88,6 +88,12 @@ def _parser() -> argparse.ArgumentParser:
                    "(default: halmstad; DAVIS labels only one object per sequence)")
     f.add_argument("--min-confidence", type=float, default=None, metavar="P",
                    help="threshold written with the weights (default: the config's, or 0.3 if 0)")
+    f.add_argument("--features", metavar="NAMES",
+                   help="comma-separated features to fit, the others' weights 0 (default: all but "
+                   "ring_gradient and ring_std, which say what the background is)")
+    f.add_argument("--score-on", type=Path, action="append", default=[], metavar="PATH",
+                   help="also score, with the weights fitted on the training clips, every clip of "
+                   "this folder that was not trained on (leave-one-dataset-out); repeatable")
     f.add_argument("--out", type=Path, help="write the perception.confidence section here (YAML)")
     f.add_argument("--workers", type=int, help="processes (default: all cores)")
     with_config(f)
@@ -308,14 +314,18 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
     import numpy as np
 
     from app.tools.confidence_fit import (
+        DEFAULT_FEATURES,
+        ClipExamples,
         collect_all,
+        confidence,
+        feature_columns,
         fit_logistic,
         leave_one_clip_out,
         score_clip,
         sum_scores,
         weights_yaml,
     )
-    from app.tools.evaluate import TOTALS, find_clips
+    from app.tools.evaluate import TOTALS, Clip, find_clips
 
     keys = [k.strip() for k in args.train.split(",") if k.strip()]
     clips = [c for c in find_clips(args.path) if any(k in c.name or k in c.group for k in keys)]
@@ -326,11 +336,22 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
         threshold = cfg.perception.confidence.min_confidence or 0.3
     if not 0 < threshold < 1:
         raise UsageError(f"--min-confidence {threshold}: must be > 0 and < 1")
+    names = DEFAULT_FEATURES if args.features is None else tuple(
+        n.strip() for n in args.features.split(",") if n.strip())
+    try:
+        columns = feature_columns(names)
+    except ValueError as exc:
+        raise UsageError(f"--features {args.features}: {exc}") from None
+    trained = {c.video.resolve() for c in clips}
+    held: list[Clip] = []  # clips scored with the training clips' weights, never fitted on
+    for folder in args.score_on:
+        held += [c for c in find_clips(folder) if c.video.resolve() not in trained]
     examples = collect_all(clips, cfg, args.workers)
     rows = sum(len(e.y) for e in examples)
     print(f"{len(clips)} clips, {rows} track reports, {sum(int(e.y.sum()) for e in examples)} "
           "on a labelled object")
-    loo = leave_one_clip_out(examples)
+    print("features fitted: " + ", ".join(names))
+    loo = leave_one_clip_out(examples, columns)
     groups = [(name, members) for name, members in TOTALS
               if any(e.clip.group in members for e in examples)]
     print("\nLeave-one-clip-out (each clip scored with weights fitted on the others):")
@@ -345,7 +366,24 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
             cells.append(f"{r:.3f} / {p:.3f}")
         label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
         print(f"| {label} | " + " | ".join(cells) + " |")
-    bias, w = fit_logistic(np.vstack([e.x for e in examples]), np.concatenate([e.y for e in examples]))
+    bias, w = fit_logistic(np.vstack([e.x for e in examples]), np.concatenate([e.y for e in examples]),
+                           columns=columns)
+    if held:
+        held_examples = collect_all(held, cfg, args.workers)
+        by_group: dict[str, list[ClipExamples]] = {}
+        for ex in held_examples:
+            by_group.setdefault(ex.clip.group, []).append(ex)
+        print(f"\nHeld out ({len(held)} clips never trained on, scored with the weights fitted on all "
+              "the training clips):")
+        print("| min_confidence | " + " | ".join(f"{g} recall / precision" for g in by_group) + " |")
+        print("|---:|" + "---:|" * len(by_group))
+        for thr in sorted({0.0, 0.3, 0.35, 0.4, 0.5, 0.6, round(threshold, 3)}):
+            cells = []
+            for held_group in by_group.values():
+                r, p, _ = sum_scores([score_clip(ex, confidence(bias, w, ex.x), thr) for ex in held_group])
+                cells.append(f"{r:.3f} / {p:.3f}")
+            label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
+            print(f"| {label} | " + " | ".join(cells) + " |")
     text = weights_yaml(bias, w, threshold)
     print("\nFitted on all of them:\n" + text, end="")
     if args.out:

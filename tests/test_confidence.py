@@ -46,10 +46,19 @@ def test_ring_texture_sees_sky_as_plain_and_trees_as_textured() -> None:
     for img in (sky, trees):
         img[96:104, 96:104] = 40  # the object itself: excluded from the ring
     inner = (np.array([[[96, 96]], [[103, 96]], [[103, 103]], [[96, 103]]], np.int32),)  # the 8x8 square
-    g_sky, s_sky = ring_texture(sky, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
-    g_tree, s_tree = ring_texture(trees, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
+    g_sky, s_sky, c_sky = ring_texture(sky, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
+    g_tree, s_tree, c_tree = ring_texture(trees, (96, 96, 8, 8), inner, 10)  # type: ignore[misc]
     assert g_sky == 0.0 and s_sky == 0.0  # a dark object on plain sky leaves no texture in its ring
     assert g_tree > 50 and s_tree > 10
+    # its contrast, in units of the ring's own variation: |40 - 170| / (0 + 1) on the sky
+    assert c_sky == pytest.approx(130.0)
+    ring = np.ones((28, 28), bool)
+    ring[10:18, 10:18] = False  # rows/columns 86-113 around the object at 96-103
+    mean, std = trees[86:114, 86:114][ring].mean(), trees[86:114, 86:114][ring].std()
+    assert c_tree == pytest.approx(abs(40 - mean) / (std + 1), rel=1e-6)
+    # the ground's own texture, where an object would be: no contrast to speak of
+    bare = textured(200, 200, seed=4)
+    assert ring_texture(bare, (96, 96, 8, 8), inner, 10)[2] < 0.3  # type: ignore[index]
     # off the frame: no band to measure
     off = (np.array([[[-40, -40]], [[-33, -40]], [[-33, -33]], [[-40, -33]]], np.int32),)
     assert ring_texture(sky, (-40, -40, 8, 8), off, 10) is None
@@ -77,6 +86,39 @@ def test_ring_texture_is_the_same_wherever_the_image_lies_in_memory() -> None:
     gy = cv2.Sobel(grey, cv2.CV_64F, 0, 1, ksize=3)[37:74, 51:94]
     assert ref[0] == pytest.approx(np.percentile(np.hypot(gx, gy)[band], 75), rel=1e-9)
     assert ref[1] == pytest.approx(grey[37:74, 51:94][band].std(), rel=1e-9)
+    crop = grey[37:74, 51:94]
+    contrast = abs(crop[~band].mean() - crop[band].mean()) / (crop[band].std() + 1)
+    assert ref[2] == pytest.approx(contrast, rel=1e-9)
+
+
+def test_shipped_weights_report_an_object_over_ground_and_not_the_ground_itself() -> None:
+    """The shipped confidence does not ask what the background is: a dark body over textured
+    ground, moving steadily with a photometric core, is reported; a patch of that ground's
+    own texture that parallax moves back and forth, with no core, is not. (Fitted on the
+    Halmstad clips with the ring's texture, the object's textured ring alone had held it
+    back: weights -1.2 and -0.5 on the two ring features, which are 0 now.)"""
+    from app.config import Config
+
+    cfg = Config().perception.confidence
+    assert cfg.w_ring_gradient == 0.0 and cfg.w_ring_std == 0.0 and cfg.w_contrast > 0 and cfg.w_core > 0
+    ground = textured(seed=3)
+    ground[196:204, 126:134] = 30  # the object (8 x 8) at frame 0's place; it moves 3 px a frame
+    scorer = TrackConfidence(cfg)
+    line: tuple[tuple[float, float], ...] = ()
+    jitter: tuple[tuple[float, float], ...] = ()
+    for i in range(12):
+        frame = textured(seed=3)
+        frame[196:204, 126 + 3 * i:134 + 3 * i] = 30
+        line = (*line, (130.0 + 3 * i, 200.0))
+        jitter = (*jitter, (400.0 + (i % 2), 300.0))
+        body = dataclasses.replace(_report(1, _square(126 + 3 * i, 196), line, hits=i + 1), core=(40.0, 3.0))
+        patch = _report(2, _square(396 + (i % 2), 296), jitter, hits=i + 1)
+        bird, clutter = scorer(frame, [body, patch])
+    i_contrast, i_core = FEATURES.index("contrast"), FEATURES.index("core")
+    assert bird.features[i_core] == 1.0 and clutter.features[i_core] == 0.0
+    # (ground texture stands from its own ring by 0.07-0.98 of the ring's std, 10th-90th percentile)
+    assert bird.features[i_contrast] > 3 * clutter.features[i_contrast]
+    assert bird.reported and not clutter.reported
 
 
 def test_straightness_of_a_line_and_of_a_jitter() -> None:
@@ -210,6 +252,26 @@ def test_fit_confidence_command_end_to_end(tmp_path: Path) -> None:
     bad = subprocess.run([sys.executable, "-m", "app.cli", "fit-confidence", str(data), "--train", "nothing"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--train nothing: 0 clip(s) match" in bad.stderr
+    # fitted on some features only, scored on a clip it never trained on (leave-one-dataset-out)
+    (data / "clip2.mp4").rename(tmp_path / "clip2.mp4")
+    (data / "clip2.gt.csv").rename(tmp_path / "clip2.gt.csv")
+    shutil.copy(tmp_path / "clip2.mp4", data / "clip1b.mp4")
+    shutil.copy(data / "clip1.gt.csv", data / "clip1b.gt.csv")
+    held = tmp_path / "held"
+    held.mkdir()
+    for name in ("clip2.mp4", "clip2.gt.csv"):
+        (tmp_path / name).rename(held / name)
+    some = subprocess.run([sys.executable, "-m", "app.cli", "fit-confidence", str(data), "--train", "clip",
+                           "--features", "matched,log_hits,match_fraction", "--score-on", str(held),
+                           "--out", str(out), "--workers", "1"], capture_output=True, text=True, timeout=300)
+    assert some.returncode == 0, some.stderr
+    assert "features fitted: matched, log_hits, match_fraction" in some.stdout
+    assert "Held out (1 clips never trained on" in some.stdout
+    fitted = config_from_mapping(yaml.safe_load(out.read_text())).perception.confidence
+    assert fitted.w_contrast == fitted.w_ring_std == 0.0 and fitted.w_match_fraction != 0.0
+    unknown = subprocess.run([sys.executable, "-m", "app.cli", "fit-confidence", str(data), "--train", "clip",
+                              "--features", "matched,colour"], capture_output=True, text=True, timeout=60)
+    assert unknown.returncode == 2 and "features colour: expected some of matched" in unknown.stderr
 
 
 def test_on_swaying_trees_the_confidence_removes_false_objects_not_birds(data_dir: Path) -> None:

@@ -26,7 +26,21 @@ bottom_edge     how long the ``ring_px`` band below the cluster's box has crosse
                 frame's bottom edge: the newest matched frames in a row that it did, over
                 ``edge_frames``, at most 1 (ground, masts and tree tops that the bottom edge
                 cuts off stay there; an object passing through it is 0 once above it)
+contrast        the same median of how far the grey of the cluster's pixels stands from its
+                ring's: |mean inside - mean of the ring| / (ring's grey std + 1), in units of
+                the ring's own variation (an object stands out from whatever is behind it;
+                texture that parallax moves is the ring's texture)
+core            the fraction of the last ``history_frames`` matched frames in which
+                photometry found the cluster a core (pixels beyond half its own contrast
+                against the ring: app.perception.photometry): a solid body, not an edge
 ============== ==========================================================================
+
+The two ring-texture features say what the background is (plain sky or texture); fitted on
+the Halmstad clips, they make ground behind an object read as clutter. The shipped weights
+leave them out (``w_ring_gradient`` and ``w_ring_std`` 0) for ``contrast`` and ``core``,
+which ask how the track stands against its background, whatever that is: measured
+leave-one-dataset-out, docs/measurements.md "A confidence that does not ask what the
+background is".
 
 and a confidence ``sigmoid(bias + sum(weight * feature))``. The weights are fitted by
 logistic regression (``midair fit-confidence``) and live in ``config.yaml``; a track is
@@ -48,7 +62,7 @@ from app.config import ConfidenceConfig
 from app.perception.tracking import TrackReport
 
 FEATURES = ("matched", "log_hits", "ring_gradient", "ring_std", "straightness", "match_fraction",
-            "elongation", "fill", "bottom_edge")
+            "elongation", "fill", "bottom_edge", "contrast", "core")
 
 
 @dataclass
@@ -60,16 +74,19 @@ class _Evidence:
     elongation: deque[float]
     fill: deque[float]
     matched: deque[bool]
+    contrast: deque[float]
+    core: deque[bool]
     edge_run: int = field(default=0)  # newest matched frames in a row with the ring across the bottom edge
     seen: bool = field(default=False)  # updated in the current frame
 
 
 def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], contours: tuple[np.ndarray, ...],
-                 ring_px: int) -> tuple[float, float] | None:
+                 ring_px: int) -> tuple[float, float, float] | None:
     """75th percentile of the gradient magnitude and standard deviation of grey in a
     ``ring_px`` band around ``box`` (x, y, w, h px), outside the object's pixels: the inside
-    of its outer ``contours`` (image px, as a Cluster holds them). None if the band is empty
-    (box off the frame)."""
+    of its outer ``contours`` (image px, as a Cluster holds them); and the object's contrast
+    against that band, |mean inside - mean of the band| / (the band's std + 1). None if the
+    band is empty (box off the frame)."""
     height, width = grey.shape
     x, y, w, h = box
     x0, y0 = max(0, x - ring_px), max(0, y - ring_px)
@@ -95,8 +112,13 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], contours: tup
     squares = gxs * gxs + gys * gys
     if squares.size == 0:
         return None
-    _, std = cv2.meanStdDev(grey[y0:y1, x0:x1], mask=band)
-    return _percentile_of_root(squares, 75.0), float(std[0, 0])
+    crop = grey[y0:y1, x0:x1]
+    mean, std = cv2.meanStdDev(crop, mask=band)
+    inside = cv2.bitwise_not(band)
+    contrast = 0.0
+    if cv2.countNonZero(inside):
+        contrast = abs(cv2.mean(crop, mask=inside)[0] - float(mean[0, 0])) / (float(std[0, 0]) + 1.0)
+    return _percentile_of_root(squares, 75.0), float(std[0, 0]), contrast
 
 
 def _percentile_of_root(squares: np.ndarray, q: float) -> float:
@@ -160,7 +182,7 @@ class TrackConfidence:
             if ev is None:
                 n = cfg.history_frames
                 ev = _Evidence(deque(maxlen=n), deque(maxlen=n), deque(maxlen=n), deque(maxlen=n),
-                               deque(maxlen=cfg.match_frames))
+                               deque(maxlen=cfg.match_frames), deque(maxlen=n), deque(maxlen=n))
                 self._evidence[t.track_id] = ev
             ev.seen = True
             ev.matched.append(t.matched)
@@ -173,6 +195,8 @@ class TrackConfidence:
                 if tex is not None:
                     ev.gradient.append(tex[0])
                     ev.std.append(tex[1])
+                    ev.contrast.append(tex[2])
+                ev.core.append(t.core is not None)
             features = (
                 1.0 if t.matched else 0.0,
                 math.log1p(t.hits),
@@ -183,6 +207,8 @@ class TrackConfidence:
                 median(ev.elongation) if ev.elongation else 0.0,
                 median(ev.fill) if ev.fill else 1.0,
                 min(1.0, ev.edge_run / cfg.edge_frames),
+                median(ev.contrast) if ev.contrast else 0.0,
+                sum(ev.core) / len(ev.core) if ev.core else 0.0,
             )
             conf = logistic(cfg.bias, self.weights, features)
             reported = conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched

@@ -77,11 +77,11 @@ class Perception:
                 clusters if det.mask is not None else None, current.t_s, det.homography
             )
             if current_grey is not None:
-                tracks = self.confidence(current_grey, tracks)
                 # each matched object's flux and core area, for looming (a box's size steps by
-                # whole pixels, and jumps with what its blob merges with)
+                # whole pixels, and jumps with what its blob merges with) and the confidence
                 tracks = [t.with_photometry(*photometry.measure(current_grey, t.cluster.box))
                           if t.matched and t.cluster is not None else t for t in tracks]
+                tracks = self.confidence(current_grey, tracks)
         t3 = time.perf_counter()
         timings = {
             "detection_ms": (t1 - t0) * 1e3,

@@ -80,9 +80,30 @@ def collect_all(clips: Sequence[Clip], cfg: Config, workers: int | None = None) 
         return list(pool.map(collect, clips, [cfg] * len(clips)))
 
 
+# What the shipped weights are fitted on: every feature but the ring's texture, which says
+# what the background is (plain sky or texture) rather than how the track stands against it,
+# and does not carry from one kind of background to another (docs/measurements.md, "A
+# confidence that does not ask what the background is")
+DEFAULT_FEATURES = tuple(f for f in FEATURES if not f.startswith("ring_"))
+
+
+def feature_columns(names: Sequence[str]) -> list[int]:
+    """The columns of ``names`` in FEATURES; a clear error for a name that is not one."""
+    unknown = [n for n in names if n not in FEATURES]
+    if unknown or not names:
+        raise ValueError(f"features {', '.join(unknown) or '(none)'}: expected some of {', '.join(FEATURES)}")
+    return [FEATURES.index(n) for n in names]
+
+
 def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = L2,
-                 iterations: int = 50) -> tuple[float, np.ndarray]:
-    """Intercept and weights (in the units of ``x``) of a ridge-penalised logistic regression."""
+                 iterations: int = 50, columns: Sequence[int] | None = None) -> tuple[float, np.ndarray]:
+    """Intercept and weights (in the units of ``x``) of a ridge-penalised logistic regression;
+    with ``columns``, fitted on those features only, the others' weights 0."""
+    if columns is not None:
+        bias, w = fit_logistic(x[:, list(columns)], y, l2, iterations)
+        full = np.zeros(x.shape[1])
+        full[list(columns)] = w
+        return bias, full
     if len(y) == 0 or y.all() or not y.any():
         raise ValueError("need examples of both classes to fit a confidence")
     mu, sd = x.mean(0), x.std(0)
@@ -119,12 +140,14 @@ def score_clip(ex: ClipExamples, conf: np.ndarray, min_confidence: float) -> dic
     return score(ex.gt, rows, ex.frames, ex.clip.cuts)  # type: ignore[arg-type]
 
 
-def leave_one_clip_out(examples: list[ClipExamples]) -> list[np.ndarray]:
+def leave_one_clip_out(examples: list[ClipExamples],
+                       columns: Sequence[int] | None = None) -> list[np.ndarray]:
     """Each clip's confidences from weights fitted on the other clips."""
     out = []
     for i, ex in enumerate(examples):
         rest = [e for j, e in enumerate(examples) if j != i]
-        bias, w = fit_logistic(np.vstack([e.x for e in rest]), np.concatenate([e.y for e in rest]))
+        bias, w = fit_logistic(np.vstack([e.x for e in rest]), np.concatenate([e.y for e in rest]),
+                               columns=columns)
         out.append(confidence(bias, w, ex.x))
     return out
 
