@@ -89,8 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--min-confidence", type=float, default=None, metavar="P",
                    help="threshold written with the weights (default: the config's, or 0.3 if 0)")
     f.add_argument("--features", metavar="NAMES",
-                   help="comma-separated features to fit, the others' weights 0 (default: all but "
-                   "ring_gradient and ring_std, which say what the background is)")
+                   help="comma-separated features to fit, the others' weights 0 (default: the "
+                   "shipped nine, all but contrast and core)")
     f.add_argument("--score-on", type=Path, action="append", default=[], metavar="PATH",
                    help="also score, with the weights fitted on the training clips, every clip of "
                    "this folder that was not trained on (leave-one-dataset-out); repeatable")

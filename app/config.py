@@ -214,12 +214,12 @@ class TrackingConfig:
 @dataclass(frozen=True)
 class ConfidenceConfig:
     """Track confidence — object or moving clutter (beyond the paper; app/perception/confidence.py).
-    Weights: `midair fit-confidence ../shared/data --min-confidence 0.5` (all 32 Halmstad
-    clips, 33 626 track reports, with the detection/tracking defaults above; every feature but
-    the ring's texture, whose weights are 0)."""
+    Weights: `midair fit-confidence ../shared/data --min-confidence 0.35` (all 32 Halmstad
+    clips, 28 829 track reports, with the detection/tracking defaults of then; the first nine
+    features: contrast and core, measured leave-one-dataset-out, are not weighted)."""
 
     min_confidence: float = param(
-        0.5, "a confirmed track is reported as an object in the frames its confidence reaches "
+        0.35, "a confirmed track is reported as an object in the frames its confidence reaches "
         "this, coasting or not (0-1; 0 = every matched track, as the paper)", ge=0, lt=1,
     )
     ring_px: int = param(10, "width of the band around a cluster whose texture is measured, px", ge=1)
@@ -234,26 +234,26 @@ class ConfidenceConfig:
         5, "the bottom-edge feature reaches 1 after this many matched frames in a row at the bottom edge",
         ge=1,
     )
-    bias: float = param(-6.1496, "logistic regression intercept")
-    w_matched: float = param(0.9259, "weight of: matched in this frame (0/1)")
-    w_log_hits: float = param(0.5032, "weight of: log(1 + frames matched)")
+    bias: float = param(-0.5664, "logistic regression intercept")
+    w_matched: float = param(0.9415, "weight of: matched in this frame (0/1)")
+    w_log_hits: float = param(0.7052, "weight of: log(1 + frames matched)")
     w_ring_gradient: float = param(
-        0.0, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
+        -1.1965, "weight of: log(1 + median 75th-percentile gradient in the ring, grey levels/px)"
     )
-    w_ring_std: float = param(0.0, "weight of: log(1 + median grey std in the ring, grey levels)")
-    w_straightness: float = param(1.2829, "weight of: net displacement / path length (0-1)")
-    w_match_fraction: float = param(2.6675, "weight of: fraction of recent frames matched (0-1)")
-    w_elongation: float = param(-1.2069, "weight of: median log(long / short side) of the cluster box")
-    w_fill: float = param(-1.7620, "weight of: median blob area / box area of the cluster (0-1)")
+    w_ring_std: float = param(-0.5174, "weight of: log(1 + median grey std in the ring, grey levels)")
+    w_straightness: float = param(0.6517, "weight of: net displacement / path length (0-1)")
+    w_match_fraction: float = param(3.6073, "weight of: fraction of recent frames matched (0-1)")
+    w_elongation: float = param(-2.1498, "weight of: median log(long / short side) of the cluster box")
+    w_fill: float = param(-0.9872, "weight of: median blob area / box area of the cluster (0-1)")
     w_bottom_edge: float = param(
-        -5.2346, "weight of: matched frames in a row with the ring across the bottom edge / edge_frames "
+        -7.5980, "weight of: matched frames in a row with the ring across the bottom edge / edge_frames "
         "(0-1)",
     )
     w_contrast: float = param(
-        0.3917, "weight of: median |mean grey inside the cluster - mean of its ring| / (ring's grey std + 1)"
+        0.0, "weight of: median |mean grey inside the cluster - mean of its ring| / (ring's grey std + 1)"
     )
     w_core: float = param(
-        2.6491, "weight of: fraction of recent matched frames with a photometric core (0-1)"
+        0.0, "weight of: fraction of recent matched frames with a photometric core (0-1)"
     )
 
 

@@ -36,16 +36,13 @@ core            the fraction of the last ``history_frames`` matched frames in wh
 ============== ==========================================================================
 
 The two ring-texture features say what the background is (plain sky or texture); fitted on
-the Halmstad clips, they make ground behind an object read as clutter. The shipped weights
-leave them out (``w_ring_gradient`` and ``w_ring_std`` 0) for ``contrast`` and ``core``,
-which ask how the track stands against its background, whatever that is: measured
-leave-one-dataset-out, docs/measurements.md "A confidence that does not ask what the
-background is".
-
-and a confidence ``sigmoid(bias + sum(weight * feature))``. The weights are fitted by
-logistic regression (``midair fit-confidence``) and live in ``config.yaml``; a track is
-*reported* as an object in the frames its confidence reaches ``min_confidence``, coasting or
-not. With ``min_confidence: 0`` every matched confirmed track is reported (the paper).
+the Halmstad clips, they make ground behind an object read as clutter. ``contrast`` and
+``core`` ask instead how the track stands against its background, whatever that is. Measured
+leave-one-dataset-out (docs/measurements.md, "A confidence that does not ask what the
+background is"), weights fitted on them in place of the ring's texture carry better to ground
+flights and DAVIS, but never report a head-on ball on the horizon (its ring straddles sky
+and ground, it has no core), which the ring-texture weights report in part: the shipped
+weights are the nine features', ``w_contrast`` and ``w_core`` 0.
 """
 
 from __future__ import annotations
