@@ -6,7 +6,7 @@ moves: both leave a blob that persists. What can tell them apart is *where* the 
 plain surroundings (sky: ring gradient 75th percentile ~4 grey levels/px, median) while false
 tracks sit in texture (trees, ground: ~17), and objects move steadily while clutter jitters.
 
-Each confirmed track gets nine causal features, updated every frame it is reported:
+Each confirmed track gets eleven causal features, updated every frame it is reported:
 
 ============== ==========================================================================
 matched         1 if a cluster was matched in this frame, 0 while coasting
@@ -34,6 +34,11 @@ core            the fraction of the last ``history_frames`` matched frames in wh
                 photometry found the cluster a core (pixels beyond half its own contrast
                 against the ring: app.perception.photometry): a solid body, not an edge
 ============== ==========================================================================
+
+and a confidence ``sigmoid(bias + sum(weight * feature))``. The weights are fitted by
+logistic regression (``midair fit-confidence``) and live in ``config.yaml``; a track is
+*reported* as an object in the frames its confidence reaches ``min_confidence``, coasting or
+not. With ``min_confidence: 0`` every matched confirmed track is reported (the paper).
 
 The two ring-texture features say what the background is (plain sky or texture); fitted on
 the Halmstad clips, they make ground behind an object read as clutter. ``contrast`` and
