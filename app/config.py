@@ -224,7 +224,8 @@ class ConfidenceConfig:
     )
     ring_px: int = param(10, "width of the band around a cluster whose texture is measured, px", ge=1)
     history_frames: int = param(
-        30, "ring texture is the median over this many of the track's latest matched frames", ge=1
+        30, "ring texture, elongation, fill and contrast are medians, and core a share, over this many "
+        "of the track's latest matched frames", ge=1
     )
     straightness_frames: int = param(
         10, "straightness is measured over this many of the latest trail points, frames", ge=3
