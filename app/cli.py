@@ -321,8 +321,7 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
         feature_columns,
         fit_logistic,
         leave_one_clip_out,
-        score_clip,
-        sum_scores,
+        threshold_table,
         weights_yaml,
     )
     from app.tools.evaluate import TOTALS, Clip, find_clips
@@ -352,38 +351,20 @@ def _cmd_fit_confidence(args: argparse.Namespace, cfg: Config) -> int:
           "on a labelled object")
     print("features fitted: " + ", ".join(names))
     loo = leave_one_clip_out(examples, columns)
-    groups = [(name, members) for name, members in TOTALS
+    scored = list(zip(examples, loo, strict=True))
+    groups = [(name, [(e, c) for e, c in scored if e.clip.group in members]) for name, members in TOTALS
               if any(e.clip.group in members for e in examples)]
     print("\nLeave-one-clip-out (each clip scored with weights fitted on the others):")
-    print("| min_confidence | " + " | ".join(f"{n} recall / precision" for n, _ in groups) + " |")
-    print("|---:|" + "---:|" * len(groups))
-    for thr in sorted({0.0, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, round(threshold, 3)}):
-        cells = []
-        for _, members in groups:
-            s = [score_clip(e, c, thr) for e, c in zip(examples, loo, strict=True)
-                 if e.clip.group in members]
-            r, p, _ = sum_scores(s)
-            cells.append(f"{r:.3f} / {p:.3f}")
-        label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
-        print(f"| {label} | " + " | ".join(cells) + " |")
+    print(threshold_table(groups, [0.0, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, round(threshold, 3)]))
     bias, w = fit_logistic(np.vstack([e.x for e in examples]), np.concatenate([e.y for e in examples]),
                            columns=columns)
     if held:
-        held_examples = collect_all(held, cfg, args.workers)
-        by_group: dict[str, list[ClipExamples]] = {}
-        for ex in held_examples:
-            by_group.setdefault(ex.clip.group, []).append(ex)
+        by_group: dict[str, list[tuple[ClipExamples, np.ndarray]]] = {}
+        for ex in collect_all(held, cfg, args.workers):
+            by_group.setdefault(ex.clip.group, []).append((ex, confidence(bias, w, ex.x)))
         print(f"\nHeld out ({len(held)} clips never trained on, scored with the weights fitted on all "
               "the training clips):")
-        print("| min_confidence | " + " | ".join(f"{g} recall / precision" for g in by_group) + " |")
-        print("|---:|" + "---:|" * len(by_group))
-        for thr in sorted({0.0, 0.3, 0.35, 0.4, 0.5, 0.6, round(threshold, 3)}):
-            cells = []
-            for held_group in by_group.values():
-                r, p, _ = sum_scores([score_clip(ex, confidence(bias, w, ex.x), thr) for ex in held_group])
-                cells.append(f"{r:.3f} / {p:.3f}")
-            label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
-            print(f"| {label} | " + " | ".join(cells) + " |")
+        print(threshold_table(list(by_group.items()), [0.0, 0.3, 0.35, 0.4, 0.5, 0.6, round(threshold, 3)]))
     text = weights_yaml(bias, w, threshold)
     print("\nFitted on all of them:\n" + text, end="")
     if args.out:

@@ -91,14 +91,13 @@ def object_depth(
     z_obj = float(np.percentile(pts[:, 2], percentile))
     band = NEAR_BAND_SIGMAS * range_error_m(z_obj, rms_per_m2, NEAR_BAND_FLOOR_M)
     near = pts[np.abs(pts[:, 2] - z_obj) <= band]
-    bear = near[:, :2] / near[:, 2:3]
-    spread = math.inf
+    xyz = None
     if len(near) >= min_pixels:
+        bear = near[:, :2] / near[:, 2:3]
         lo, hi = np.percentile(bear, [5.0, 95.0], axis=0)
-        spread = float(np.max(hi - lo)) * z_obj
-    if spread <= max_width_m:
-        xyz = (float(np.mean(bear[:, 0])) * z_obj, float(np.mean(bear[:, 1])) * z_obj, z_obj)
-    else:
+        if float(np.max(hi - lo)) * z_obj <= max_width_m:
+            xyz = (float(np.mean(bear[:, 0])) * z_obj, float(np.mean(bear[:, 1])) * z_obj, z_obj)
+    if xyz is None:
         c = cam.color.deproject(np.array([cluster.x]), np.array([cluster.y]), np.array([z_obj]))[0]
         xyz = (float(c[0]), float(c[1]), float(c[2]))
     return ObjectDepth(z_obj, xyz, int(on_blob.sum()), len(near))

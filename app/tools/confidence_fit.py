@@ -162,6 +162,22 @@ def sum_scores(scores: list[dict[str, float]]) -> tuple[float, float, int]:
     return (tp / gt if gt else float("nan"), tp / (tp + fp) if tp + fp else float("nan"), gt)
 
 
+def threshold_table(groups: Sequence[tuple[str, Sequence[tuple[ClipExamples, np.ndarray]]]],
+                    thresholds: Sequence[float]) -> str:
+    """A Markdown table of recall / precision per threshold (rows) and group (columns), each
+    group's clips scored with their confidences (clip, one confidence per track report)."""
+    lines = ["| min_confidence | " + " | ".join(f"{name} recall / precision" for name, _ in groups) + " |",
+             "|---:|" + "---:|" * len(groups)]
+    for thr in sorted(set(thresholds)):
+        cells = []
+        for _, members in groups:
+            r, p, _ = sum_scores([score_clip(ex, conf, thr) for ex, conf in members])
+            cells.append(f"{r:.3f} / {p:.3f}")
+        label = f"{thr:g}" + (" (paper: matched only)" if thr == 0 else "")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def weights_yaml(bias: float, w: np.ndarray, min_confidence: float) -> str:
     lines = ["perception:", "  confidence:", f"    min_confidence: {min_confidence:g}",
              f"    bias: {bias:.4f}"]
