@@ -316,6 +316,14 @@ class CaptureConfig:
         "recording (.db3/.bag) played as the camera at its frame rate",
     )
     serial: str = param("", "serial number of the D435i to open; empty: the first one found")
+    stream: str = param(
+        "color",
+        "the image perception sees: color (the RGB camera, 69 x 42 degrees, rolling shutter) or "
+        "infrared (the left imager of the depth pair: 87 x 58 degrees, global shutter, grey, "
+        "registered to depth by construction; streamed at depth_width x depth_height and "
+        "depth_fps, with the IR projector off so its dots do not sit still in a moving image)",
+        choices=("color", "infrared"),
+    )
     # 848: the sensor's full width. Paired campaign (100 encounters, seed 11, docs/measurements.md):
     # threats avoided 47 % at 640x480 -> 62 % at 848x480 (McNemar p = 0.014); perception
     # 2.0-2.6 -> 2.5 ms per frame (midair bench --width)
@@ -760,6 +768,9 @@ def check_consistency(cfg: Config) -> None:
         raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
                           f"max_speed_mps ({dc.max_speed_mps:g})")
     cap = cfg.capture
+    if cap.stream == "infrared" and d.chroma_gain > 0:
+        raise ConfigError(f"perception.detection.chroma_gain = {d.chroma_gain:g}: the infrared "
+                          "imager (capture.stream: infrared) is monochrome; set it to 0")
     if cap.backoff_initial_s > cap.backoff_max_s:
         raise ConfigError(f"capture.backoff_initial_s = {cap.backoff_initial_s:g}: must be <= "
                           f"backoff_max_s ({cap.backoff_max_s:g})")

@@ -8,7 +8,11 @@ What it does, per the runtime issue:
 
 - colour (BGR8) and depth (Z16) at the configured resolutions and rates, IMU off unless
   asked for; frames are copied out of the SDK's buffers before they leave this module;
-- the calibration the device reports (both intrinsics, depth→colour extrinsics, depth
+- or, with ``capture.stream: infrared``, the left infrared imager (Y8, grey) in place of
+  colour: the depth pair's own lens (87° across against colour's 69°, global shutter),
+  streamed with depth at its resolution and rate, the IR projector switched off (its dot
+  pattern is fixed in the image, so it would move against a registered background);
+- the calibration the device reports (both intrinsics, depth→image extrinsics, depth
   scale) as :class:`app.camera.CameraModel`, so depth pixels are projected per pixel
   (no ``rs.align``, which costs a full-frame remap per frame);
 - capture times on the monotonic clock, corrected for the time the frame spent between the
@@ -82,10 +86,15 @@ def camera_model(color: Any, depth: Any, depth_scale_m: float) -> CameraModel:
                        np.asarray(ext.translation, float), float(depth_scale_m))
 
 
+def _image_kind(rs: Any, stream: str) -> Any:
+    """The SDK's stream type of ``capture.stream``."""
+    return rs.stream.infrared if stream == "infrared" else rs.stream.color
+
+
 class _Live:
     """The D435i through ``rs.pipeline`` (its frame syncer and queue)."""
 
-    def __init__(self, rs: Any, config: Any) -> None:
+    def __init__(self, rs: Any, config: Any, stream: str) -> None:
         self.pipeline = rs.pipeline()
         profile = self.pipeline.start(config)
         self.device = profile.get_device()
@@ -93,9 +102,14 @@ class _Live:
             # hardware timestamps mapped to the host clock: capture times net of USB delay
             if sensor.supports(rs.option.global_time_enabled):
                 sensor.set_option(rs.option.global_time_enabled, 1.0)
-        self.color = profile.get_stream(rs.stream.color)
+        depth_sensor = self.device.first_depth_sensor()
+        if stream == "infrared" and depth_sensor.supports(rs.option.emitter_enabled):
+            depth_sensor.set_option(rs.option.emitter_enabled, 0.0)
+            log.info("camera: IR projector off (perception sees the infrared imager)")
+        self.color = (profile.get_stream(rs.stream.infrared, 1) if stream == "infrared"
+                      else profile.get_stream(rs.stream.color))
         self.depth = profile.get_stream(rs.stream.depth)
-        self.depth_scale = self.device.first_depth_sensor().get_depth_scale()
+        self.depth_scale = depth_sensor.get_depth_scale()
 
     def wait(self, timeout_ms: int) -> tuple[bool, Any]:
         return self.pipeline.try_wait_for_frames(timeout_ms)
@@ -114,7 +128,7 @@ class _Playback:
     lose nothing (librealsense maintainers, issue #1180), and a non-real-time playback
     waits for the syncer's queue."""
 
-    def __init__(self, rs: Any, path: Path) -> None:
+    def __init__(self, rs: Any, path: Path, stream: str) -> None:
         self.rs = rs
         self.path = path
         self.ctx = rs.context()
@@ -123,22 +137,31 @@ class _Playback:
         self.playback.set_real_time(False)  # before any sensor starts: every frame, in order
         self.syncer = rs.syncer(4)
         self.sensors = []
-        self.color: Any = None
+        self.color: Any = None  # the image stream perception sees: colour or infrared
         self.depth: Any = None
+        # the configured image stream when the recording has it, else the other one: a
+        # recording plays whatever its flight saw
+        found: dict[Any, Any] = {}
         for sensor in self.device.query_sensors():
-            profiles = [p for p in sensor.get_stream_profiles()
-                        if p.stream_type() in (rs.stream.color, rs.stream.depth)]
-            if not profiles:
-                continue
-            for prof in profiles:
-                if prof.stream_type() == rs.stream.color and self.color is None:
-                    self.color = prof
-                elif prof.stream_type() == rs.stream.depth and self.depth is None:
-                    self.depth = prof
-            self.sensors.append((sensor, profiles))
-        if self.color is None or self.depth is None:
+            for prof in sensor.get_stream_profiles():
+                kind = prof.stream_type()
+                if kind == rs.stream.infrared and prof.stream_index() != 1:
+                    continue  # the right imager: depth is registered to the left one
+                if kind in (rs.stream.color, rs.stream.infrared, rs.stream.depth) and kind not in found:
+                    found[kind] = (sensor, prof)
+        wanted = _image_kind(rs, stream)
+        other = rs.stream.color if wanted == rs.stream.infrared else rs.stream.infrared
+        image = found.get(wanted) or found.get(other)
+        if image is None or rs.stream.depth not in found:
             self.ctx.unload_device(str(path))
-            raise RuntimeError("the recording needs a colour and a depth stream")
+            raise RuntimeError("the recording needs a colour or infrared stream and a depth stream")
+        self.color, self.depth = image[1], found[rs.stream.depth][1]
+        by_sensor: dict[int, tuple[Any, list[Any]]] = {}
+        # depth's sensor started first, as the recorder wrote it first: its frame reaches the
+        # syncer before the image's (a depth that comes alone waits for its image)
+        for sensor, prof in (found[rs.stream.depth], image):
+            by_sensor.setdefault(id(sensor), (sensor, []))[1].append(prof)
+        self.sensors = list(by_sensor.values())
         self.depth_scale = self.device.first_depth_sensor().get_depth_scale()
         for sensor, profiles in self.sensors:
             sensor.open(profiles)
@@ -180,7 +203,8 @@ class RealSenseSource(FrameSource):
         self.carried = path is None  # the D435i on the vehicle, not a recording of one
         self.has_depth = True
         self.name = "d435i" if path is None else path.stem
-        self.fps = float(cfg.color_fps)
+        self.fps = float(cfg.depth_fps if cfg.stream == "infrared" else cfg.color_fps)
+        self.image_stream = cfg.stream  # what the source delivers (a recording: what it holds)
         self.restarts = 0  # pipeline restarts after a stall
         self.resets = 0  # USB hardware resets
         self.last_gyro: tuple[float, float, float] | None = None  # rad/s, with enable_imu
@@ -202,7 +226,11 @@ class RealSenseSource(FrameSource):
         config = rs.config()
         if c.serial:
             config.enable_device(c.serial)
-        config.enable_stream(rs.stream.color, c.color_width, c.color_height, rs.format.bgr8, c.color_fps)
+        if c.stream == "infrared":  # the stereo module streams it with depth: same size and rate
+            config.enable_stream(rs.stream.infrared, 1, c.depth_width, c.depth_height, rs.format.y8,
+                                 c.depth_fps)
+        else:
+            config.enable_stream(rs.stream.color, c.color_width, c.color_height, rs.format.bgr8, c.color_fps)
         config.enable_stream(rs.stream.depth, c.depth_width, c.depth_height, rs.format.z16, c.depth_fps)
         if c.enable_imu:
             config.enable_stream(rs.stream.accel)
@@ -215,8 +243,8 @@ class RealSenseSource(FrameSource):
             raise SourceError("no RealSense camera found: is the D435i on a USB 3 port "
                               "(lsusb lists 8086:0b3a) and the udev rule installed?")
         try:
-            backend: _Live | _Playback = (_Live(rs, self._config()) if self.path is None
-                                          else _Playback(rs, self.path))
+            backend: _Live | _Playback = (_Live(rs, self._config(), self.cfg.stream) if self.path is None
+                                          else _Playback(rs, self.path, self.cfg.stream))
         except RuntimeError as exc:
             if first:
                 what = str(self.path) if self.path else f"RealSense camera {self.cfg.serial}".strip()
@@ -227,9 +255,10 @@ class RealSenseSource(FrameSource):
         if self.path is not None:
             self.fps = float(backend.color.fps()) or self.fps
         self.camera = camera_model(backend.color, backend.depth, backend.depth_scale)
+        self.image_stream = "infrared" if backend.color.stream_type() == rs.stream.infrared else "color"
         if first:
-            log.info("camera %s: colour %dx%d, depth %dx%d, depth scale %.4g m",
-                     self.name, self.camera.color.width, self.camera.color.height,
+            log.info("camera %s: %s %dx%d, depth %dx%d, depth scale %.4g m",
+                     self.name, self.image_stream, self.camera.color.width, self.camera.color.height,
                      self.camera.depth.width, self.camera.depth.height, self.camera.depth_scale_m)
 
     def _stop(self) -> None:
@@ -333,7 +362,7 @@ class RealSenseSource(FrameSource):
                 self.last_gyro = (float(g.x), float(g.y), float(g.z))
         if frames.is_frameset():
             frames = frames.as_frameset()
-        color = frames.first_or_default(rs.stream.color)
+        color = frames.first_or_default(_image_kind(rs, self.image_stream))
         depth = frames.first_or_default(rs.stream.depth)
         if not color:
             if depth:  # the syncer let it go alone: keep it for the colour frame that follows
@@ -368,21 +397,26 @@ class RealSenseSource(FrameSource):
 
 
 def write_realsense_recording(frames: Iterable[Frame], camera: CameraModel, fps: float,
-                              path: Path) -> Path:
+                              path: Path, stream: str = "color") -> Path:
     """Write frames (colour BGR8, depth uint16) as a RealSense recording with pyrealsense2's
-    own recorder and a software device carrying ``camera``'s calibration.
+    own recorder and a software device carrying ``camera``'s calibration. With ``stream``
+    "infrared" the images are grey (H x W) and go in as the left infrared imager (Y8,
+    index 1), as a D435i streaming ``capture.stream: infrared`` records them.
 
     SDK 2.59 writes a ROS 2 ``.db3`` file whatever the name; give ``path`` that suffix.
     """
+    if stream not in ("color", "infrared"):
+        raise ValueError(f"stream {stream!r}: color or infrared")
+    infrared = stream == "infrared"
     rs = _rs()
     path.parent.mkdir(parents=True, exist_ok=True)
     device = rs.software_device()
     depth_sensor = device.add_sensor("Depth")
-    color_sensor = device.add_sensor("Color")
+    color_sensor = device.add_sensor("Infrared" if infrared else "Color")
 
-    def stream(kind: Any, uid: int, intr: Intrinsics, fmt: Any, bpp: int) -> Any:
+    def video(kind: Any, uid: int, intr: Intrinsics, fmt: Any, bpp: int, index: int = 0) -> Any:
         vs = rs.video_stream()
-        vs.type, vs.index, vs.uid = kind, 0, uid
+        vs.type, vs.index, vs.uid = kind, index, uid
         vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = intr.width, intr.height, int(round(fps)), bpp, fmt
         ri = rs.intrinsics()
         ri.width, ri.height, ri.fx, ri.fy, ri.ppx, ri.ppy = (
@@ -391,8 +425,11 @@ def write_realsense_recording(frames: Iterable[Frame], camera: CameraModel, fps:
         vs.intrinsics = ri
         return vs
 
-    d_profile = depth_sensor.add_video_stream(stream(rs.stream.depth, 0, camera.depth, rs.format.z16, 2))
-    c_profile = color_sensor.add_video_stream(stream(rs.stream.color, 1, camera.color, rs.format.bgr8, 3))
+    d_profile = depth_sensor.add_video_stream(video(rs.stream.depth, 0, camera.depth, rs.format.z16, 2))
+    c_bpp = 1 if infrared else 3
+    c_profile = color_sensor.add_video_stream(
+        video(rs.stream.infrared, 1, camera.color, rs.format.y8, 1, index=1) if infrared
+        else video(rs.stream.color, 1, camera.color, rs.format.bgr8, 3))
     depth_sensor.add_read_only_option(rs.option.depth_units, camera.depth_scale_m)
     ext = rs.extrinsics()
     ext.rotation = np.asarray(camera.rotation, float).T.flatten().tolist()  # column-major
@@ -410,7 +447,10 @@ def write_realsense_recording(frames: Iterable[Frame], camera: CameraModel, fps:
                 depth = np.ascontiguousarray(frame.depth, np.uint16)
                 _push(rs, depth_sensor, d_profile, depth, 2, stamp_ms, k)
             color = np.ascontiguousarray(frame.color, np.uint8)
-            _push(rs, color_sensor, c_profile, color, 3, stamp_ms, k)
+            if color.ndim != (2 if infrared else 3):
+                raise SourceError(f"{path}: frame {frame.index} is {color.shape}, not a "
+                                  f"{'grey (H x W)' if infrared else 'BGR (H x W x 3)'} {stream} image")
+            _push(rs, color_sensor, c_profile, color, c_bpp, stamp_ms, k)
             while sink.poll_for_frame():
                 pass  # the recorder has them; keep the queue from filling
     finally:

@@ -56,6 +56,10 @@ def test_yaml_dump_round_trips() -> None:
         ({"flight": {"takeover_modes": "position"}},
          "flight.takeover_modes = 'position': must be a list of strings"),
         ({"flight": {"mode": "test"}}, "flight.mode = 'test': must be one of guard, shadow, test-flight"),
+        ({"capture": {"stream": "thermal"}}, "capture.stream = 'thermal': must be one of color, infrared"),
+        ({"capture": {"stream": "infrared"}, "perception": {"detection": {"chroma_gain": 0.5}}},
+         "perception.detection.chroma_gain = 0.5: the infrared imager (capture.stream: infrared) is "
+         "monochrome; set it to 0"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
         ({"perception": {"detection": {"lk_pyramid_levels": 3}}},

@@ -67,6 +67,44 @@ def test_a_recording_plays_back_bit_exact_with_its_calibration(
     assert len(list(src)) == 30  # a second pass starts the recording again
 
 
+def test_an_infrared_recording_plays_its_grey_imager_registered_to_depth(tmp_path: Path) -> None:
+    # the left infrared imager: the depth pair's lens, so depth -> image is the identity
+    ir_lens = Intrinsics(848, 480, 447.0, 447.0, 423.5, 239.5)
+    camera = CameraModel(ir_lens, ir_lens, np.eye(3), np.zeros(3), 0.001)
+    rng = np.random.default_rng(5)
+    written = [Frame(k + 1, k / 60.0, rng.integers(0, 256, (480, 848), dtype=np.uint8),
+                     rng.integers(0, 9000, (480, 848), dtype=np.uint16)) for k in range(12)]
+    path = write_realsense_recording(written, camera, 60.0, tmp_path / "ir.db3", stream="infrared")
+    for cfg in (replace(CaptureConfig(), stream="infrared"), CaptureConfig()):
+        # configured for colour, a recording that holds only the infrared imager plays that
+        src = RealSenseSource(cfg, path)
+        assert src.image_stream == "infrared"
+        got = list(src)
+        assert len(got) == 12
+        for a, b in zip(written, got, strict=True):
+            assert b.color.ndim == 2 and np.array_equal(a.color, b.color)
+            assert a.depth is not None and b.depth is not None and np.array_equal(a.depth, b.depth)
+        assert src.camera is not None and src.camera.color == ir_lens and src.camera.depth == ir_lens
+        assert np.allclose(src.camera.rotation, np.eye(3)) and src.fps == pytest.approx(60.0)
+
+
+def test_a_colour_recording_configured_for_infrared_plays_its_colour(
+        noise_recording: tuple[Path, list[Frame]]) -> None:
+    path, written = noise_recording
+    src = RealSenseSource(replace(CaptureConfig(), stream="infrared"), path)
+    assert src.image_stream == "color"
+    first = next(iter(src))
+    assert np.array_equal(first.color, written[0].color)
+    src.close()
+
+
+def test_writing_colour_frames_as_infrared_is_refused_by_name(tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match=r"frame 1 is \(480, 640, 3\), not a grey \(H x W\) infrared image"):
+        write_realsense_recording(frames(2), CAMERA, 30.0, tmp_path / "bad.db3", stream="infrared")
+    with pytest.raises(ValueError, match="stream 'thermal'"):
+        write_realsense_recording(frames(2), CAMERA, 30.0, tmp_path / "bad2.db3", stream="thermal")
+
+
 def test_a_stall_restarts_the_pipeline_and_frames_come_again(
         noise_recording: tuple[Path, list[Frame]]) -> None:
     path, written = noise_recording

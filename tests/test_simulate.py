@@ -39,6 +39,40 @@ def test_a_sphere_straight_ahead_lands_on_the_principal_point_with_its_depth() -
     assert (depth[: int(intr.ppy)] == 0).all()  # sky: no depth data
 
 
+def test_the_infrared_imager_sees_87_degrees_in_grey_where_colour_sees_69() -> None:
+    from app.config import CaptureConfig
+    from app.sim.simulate import world_for
+    from app.sim.world import Monochrome
+
+    enc = Encounter(seed=5, kind="ball", object_speed_mps=6.0, approach_deg=40.0, climb_deg=0.0,
+                    miss_m=0.0, miss_dir_deg=0.0, size_m=0.3, grey=40, own_speed_mps=0.0,
+                    altitude_m=8.0, t_cpa_s=3.0)
+    colour = world_for(Config(), enc)
+    infrared = world_for(replace(Config(), capture=replace(CaptureConfig(), stream="infrared")), enc)
+    c_lens, i_lens = colour.camera().color, infrared.camera().color
+    # half-widths: atan(424 / 615) = 34.6°, atan(424 / 447) = 43.5° (D435i datasheet: 69° and 87°)
+    assert math.degrees(math.atan(c_lens.ppx / c_lens.fx)) == pytest.approx(34.6, abs=0.1)
+    assert math.degrees(math.atan(i_lens.ppx / i_lens.fx)) == pytest.approx(43.5, abs=0.1)
+    assert infrared.camera().depth == i_lens  # depth is the infrared imager's own
+    # a collision course from 40° off the nose: outside the colour lens to the end, inside
+    # the infrared one from the start
+    assert enc.in_view_s(c_lens) == 0.0
+    assert enc.in_view_s(i_lens) == pytest.approx(3.0, abs=0.05)
+    ball = [Sphere(1, (6.0, 6.0 * math.tan(math.radians(40.0)), -8.0), 0.4, 20)]
+    grey, depth, seen = infrared.render((0.0, 0.0, -8.0), 0.0, ball)
+    assert grey.ndim == 2 and grey.shape == (480, 848) and depth.shape == (480, 848)
+    u, v, _r, z = seen[1]
+    assert 0 < u < 848 and z == pytest.approx(6.0)
+    assert int(grey[int(v), int(u)]) < 60  # the dark ball, on the grey frame
+    # it is the colour world drawn through the wider lens, turned grey as perception does
+    assert isinstance(infrared, Monochrome) and isinstance(colour, World)
+    fresh = world_for(replace(Config(), capture=replace(CaptureConfig(), stream="infrared")), enc)
+    assert isinstance(fresh, Monochrome)  # the same seed: the same camera noise, frame for frame
+    inner, _d, _s = fresh.world.render((0.0, 0.0, -8.0), 0.0, ball)
+    assert inner.shape == (480, 848, 3)
+    assert np.array_equal(grey, cv2.cvtColor(inner, cv2.COLOR_BGR2GRAY))
+
+
 def test_a_tilting_camera_turns_the_frame_about_its_centre_and_keeps_depths_true() -> None:
     from app.decision.ego import camera_rotation
     from app.sim.world import Tilted, d435i_color

@@ -25,7 +25,7 @@ import numpy as np
 from app.config import Config
 from app.sim.fast import run_one
 from app.sim.results import ResultLog, poisson_upper, wilson
-from app.sim.simulate import Encounter, EncounterResult
+from app.sim.simulate import Encounter, EncounterResult, lens_for
 
 SPEED_BINS = (2.0, 4.0, 6.0, 8.0, 10.0, 14.0)  # m/s
 ANGLE_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0)  # |approach|, deg (sampled to 50; the lens sees +-27.5)
@@ -173,6 +173,14 @@ def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | Non
     return None
 
 
+
+def _lens(cfg: Config) -> str:
+    """What the campaign's perception saw: the stream, its size and width across."""
+    lens = lens_for(cfg)
+    across = 2.0 * math.degrees(math.atan2(lens.width / 2.0, lens.fx))
+    name = "infrared" if cfg.capture.stream == "infrared" else "colour"
+    return f"{name} {lens.width}x{lens.height} ({across:.0f}° across)"
+
 def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterResult],
                  cfg: Config, wall_s: float, title: str = "Campaign",
                  wide: Sequence[EncounterResult] = (), crossing: Sequence[EncounterResult] = ()) -> Path:
@@ -194,8 +202,9 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     lines = [f"# {title}", "",
              f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
              f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, camera "
-             f"{rows[0].encounter.fps if rows else 30:g} fps, stand-in vehicle's MPC_XY_VEL_P_ACC "
-             f"{rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}, wall time {wall_s:.0f} s.", "",
+             f"{_lens(cfg)} at {rows[0].encounter.fps if rows else 30:g} fps, stand-in vehicle's "
+             f"MPC_XY_VEL_P_ACC {rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}, "
+             f"wall time {wall_s:.0f} s.", "",
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
              "|---|---|---|---|---|---|---|"]

@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from app.camera import Intrinsics
 from app.config import Config
 from app.decision.ego import camera_rotation
 from app.perception.frames import Frame, FrameSource
-from app.sim.world import Renderer, Sphere, Tilted, d435i_color, load_world
+from app.sim.world import Monochrome, Renderer, Sphere, Tilted, d435i_color, d435i_infrared, load_world
 
 VEHICLE_RADIUS_M = 0.25  # a 250-size quadrotor with props: ~0.5 m across
 SAFETY_MARGIN_M = 0.2  # separation beyond the two radii that counts as a clean miss
@@ -119,6 +119,11 @@ class Truth:
     pixel: tuple[float, float, float, float] | None  # u, v, radius px, z m (when in view)
 
 
+def _tilts(world: Renderer) -> TypeGuard[Tilted | Monochrome]:
+    """The world turns its camera to the vehicle's attitude (render takes ``rotation``)."""
+    return isinstance(world, Tilted) or (isinstance(world, Monochrome) and world.tilts)
+
+
 class SimulatedCamera(FrameSource):
     """Renders the world from the stand-in vehicle's true pose, frame by frame in real time.
 
@@ -131,7 +136,7 @@ class SimulatedCamera(FrameSource):
 
     def __init__(self, enc: Encounter, pose: Any, world: Renderer, paced: bool = True,
                  attitude: Callable[[], tuple[float, float, float]] | None = None) -> None:
-        if isinstance(world, Tilted) and attitude is None:
+        if _tilts(world) and attitude is None:
             raise ValueError("SimulatedCamera: a tilting camera needs the vehicle's attitude")
         self.enc = enc
         self.attitude = attitude  # () -> (roll, pitch, yaw) rad, for a tilting camera
@@ -177,7 +182,7 @@ class SimulatedCamera(FrameSource):
             spheres = ([Sphere(1, (float(obj[0]), float(obj[1]), float(obj[2])), self.enc.size_m,
                                self.enc.grey, self.enc.kind)] if obj is not None else [])
             vehicle = (float(pos[0]), float(pos[1]), float(pos[2]))
-            if isinstance(self.world, Tilted) and self.attitude is not None:
+            if _tilts(self.world) and self.attitude is not None:
                 roll, pitch, _ = self.attitude()
                 turn = camera_rotation((0.0, 0.0, yaw), (roll, pitch, yaw))
                 colour, depth, seen = self.world.render(vehicle, yaw, spheres, rotation=turn)
@@ -315,11 +320,20 @@ _BIND_ATTEMPTS = 5  # new ports tried for the stand-in when the picked one is ta
 
 def world_for(cfg: Config, enc: Encounter) -> Renderer:
     """The encounter's world, the built-in one drawn through the lens the configuration
-    streams (``capture.color_width`` x ``color_height`` of a D435i)."""
-    lens = d435i_color(cfg.capture.color_width, cfg.capture.color_height)
-    if enc.tilt:
-        return Tilted(enc.world, enc.seed, lens)
-    return load_world(enc.world, enc.seed, lens)
+    streams: the D435i's colour camera at ``capture.color_width`` x ``color_height``, or with
+    ``capture.stream: infrared`` its left infrared imager at ``depth_width`` x
+    ``depth_height``, whose frames are grey."""
+    lens = lens_for(cfg)
+    world: Renderer = Tilted(enc.world, enc.seed, lens) if enc.tilt else load_world(enc.world, enc.seed, lens)
+    return Monochrome(world) if cfg.capture.stream == "infrared" else world
+
+
+def lens_for(cfg: Config) -> Intrinsics:
+    """The D435i lens perception sees through with this configuration's ``capture``."""
+    cap = cfg.capture
+    if cap.stream == "infrared":
+        return d435i_infrared(cap.depth_width, cap.depth_height)
+    return d435i_color(cap.color_width, cap.color_height)
 
 
 def _jsonl(path: Path) -> list[dict[str, Any]]:

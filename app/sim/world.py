@@ -435,6 +435,39 @@ def d435i_color(width: int, height: int) -> Intrinsics:
     return Intrinsics(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
 
 
+def d435i_infrared(width: int, height: int) -> Intrinsics:
+    """The left infrared imager of a D435i streaming ``width`` x ``height`` (pinhole,
+    centred): the depth pair's lens, 87 degrees across at 848x480 (D435I_DEPTH_FX_PX), the
+    same field at 1280x720 (its 16:9 modes scale the sensor), and depth is registered to it."""
+    f = D435I_DEPTH_FX_PX * width / 848.0
+    return Intrinsics(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)
+
+
+class Monochrome:
+    """A world seen by a monochrome imager (the D435i's infrared pair, whose sensors have no
+    colour filter and, outdoors with the projector off, see visible light and near infrared
+    alike): the inner world's frames as 8-bit grey (H x W), the rest unchanged. Near-infrared
+    brightness is not modelled (foliage is brighter there than in grey): a grey rendering of
+    the colour world, which is what the geometry of the wider lens needs."""
+
+    def __init__(self, world: Renderer) -> None:
+        self.world = world
+        self.tilts = isinstance(world, Tilted)
+
+    def camera(self) -> CameraModel:
+        return self.world.camera()
+
+    def render(self, position_m: Vec3, yaw_rad: float, spheres: list[Sphere],
+               rotation: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[float, float, float, float]]]:
+        if rotation is None:
+            colour, depth, seen = self.world.render(position_m, yaw_rad, spheres)
+        else:
+            colour, depth, seen = self.world.render(position_m, yaw_rad, spheres, rotation=rotation)  # type: ignore[call-arg]
+        grey = colour if colour.ndim == 2 else cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)
+        return grey, depth, seen
+
+
 def load_world(spec: str, seed: int, lens: Intrinsics) -> Renderer:
     """The world for one encounter: the built-in one (``spec`` empty) or ``factory(seed,
     lens)`` from ``spec`` = "package.module:factory" (importable where the encounter runs);
