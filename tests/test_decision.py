@@ -182,9 +182,17 @@ def test_no_command_exceeds_the_speed_limit(objs: list, speed: float, vmax: floa
 
 def test_emergency_outranks_evade_and_nearest_object_wins() -> None:
     dm = DecisionMaker(CFG, CAM)
-    cmd = dm.decide([obj(0.5, 0.5, 0.9, tid=1), obj(3.0, 0.0, 0.4, tid=2)], 0.0, ALT)
-    assert cmd.action == STOP and cmd.object_id == 2
+    cmd = dm.decide([obj(0.5, 0.5, 0.9, tid=1), obj(0.3, 0.0, 0.4, tid=2), obj(0.0, 0.5, 0.2, tid=3)],
+                    0.0, ALT)
+    assert cmd.action == STOP and cmd.object_id == 2  # 0.50 m away; object 3 is 0.54 m
     assert (cmd.forward_mps, cmd.right_mps, cmd.down_mps) == (0.0, 0.0, 0.0)
+
+
+def test_an_object_abeam_is_not_an_emergency_however_small_its_z() -> None:
+    """'Very close' is the distance: an object 3 m to the side with Z 0.3 m is passing,
+    and stopping then avoids nothing."""
+    assert DecisionMaker(CFG, CAM).decide([obj(3.0, 0.0, 0.3)], 0.0, ALT).action == NONE
+    assert DecisionMaker(CFG, CAM).decide([obj(0.2, 0.3, 0.3)], 0.0, ALT).action == STOP  # 0.47 m
 
 
 def test_outside_the_window_or_far_is_not_a_threat() -> None:

@@ -388,3 +388,25 @@ def test_an_image_only_passage_known_to_metres_does_not_trigger_with_the_cap() -
 
     assert frames(DecisionMaker(capped, CAM), seen((3.0, 0.0), 20.0)).action == NONE
     assert frames(DecisionMaker(capped, CAM), seen((0.5, 0.0), 2.0)).action == EVADE
+
+
+def test_a_depth_track_that_is_no_longer_measured_starts_no_evasion() -> None:
+    """Rule 1 for the response trigger: a depth-only object whose last range is older than
+    max_depth_age_s only dead-reckons (here: passing 0.2 m off in 0.4 s); it starts nothing,
+    and the same object measured this frame does."""
+    dm = DecisionMaker(CFG, CAM)
+
+    def depth_obj(measured_s: float, t: float) -> ObjectState:
+        z, closing = 4.0, 10.0
+        return ObjectState(3, (0.2, 0.0, z), measured_s, t - measured_s <= CFG.max_depth_age_s, closing,
+                           z / closing, (0.2, 0.0), source="depth", tau_s=z / closing, tau_std_s=0.02,
+                           seen_s=measured_s, crossing_std_m=0.1)
+
+    t = 5.0
+    stale = depth_obj(t - 1.0, t)
+    assert not stale.fresh and dm.assess(stale) is None
+    assert dm.decide_response([stale], t, ALT).action == NONE
+    fresh = depth_obj(t, t)
+    assert dm.assess(fresh) is not None
+    cmd = dm.decide_response([fresh], t, ALT)
+    assert cmd.action == EVADE and "(depth)" in cmd.reason

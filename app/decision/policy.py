@@ -163,6 +163,11 @@ class ObjectState:
     def lateral_m(self) -> float:
         return math.hypot(self.xyz_m[0], self.xyz_m[1])
 
+    @property
+    def range_m(self) -> float:
+        """Straight-line distance, m: what 'very close' means (an object abeam has Z ~ 0)."""
+        return math.hypot(*self.xyz_m)
+
 
 @dataclass
 class _Engagement:
@@ -573,19 +578,21 @@ class DecisionMaker:
         """The emergency stop, or holding one, shared by both policies; None when neither.
         ``last_seen`` is when a held object last counts as seen (depth, or image too)."""
         c = self.cfg
-        close = [o for o in fresh if o.z_m < c.emergency_m and o.track_id != evading]
+        # the distance, not Z: a wide lens holds an object passing 2 m abeam until its Z is
+        # 0.3 m, and stopping then avoids nothing (open loop, 87° lens: 2 of 20 wide passes)
+        close = [o for o in fresh if 0 < o.z_m and o.range_m < c.emergency_m and o.track_id != evading]
         if close:
-            near = min(close, key=lambda o: o.z_m)
+            near = min(close, key=lambda o: o.range_m)
             self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))
             return Command(STOP, object_id=near.track_id,
-                           reason=f"object {near.track_id} at {near.z_m:.2f} m < emergency "
+                           reason=f"object {near.track_id} at {near.range_m:.2f} m < emergency "
                                   f"{c.emergency_m:g} m")
         if self._engaged is not None and self._engaged.kind == STOP:
             held = by_id.get(self._engaged.object_id)
             if (held is not None and t_s - last_seen(held) <= c.max_hold_s
-                    and 0 < held.z_m < c.emergency_m + c.release_margin_m):
+                    and 0 < held.z_m and held.range_m < c.emergency_m + c.release_margin_m):
                 return Command(STOP, object_id=held.track_id,
-                               reason=f"holding: object {held.track_id} at {held.z_m:.2f} m")
+                               reason=f"holding: object {held.track_id} at {held.range_m:.2f} m")
             self._engaged = None
         return None
 
@@ -601,6 +608,12 @@ class DecisionMaker:
         if o.tau_s is None or o.tau_s <= 0:
             return None
         if o.tau_std_s is None:
+            return None
+        if o.source == "depth" and not o.fresh:
+            # rule 1: a stale distance starts nothing. With neither the image's estimate nor a
+            # range for max_depth_age_s, the depth track only dead-reckons: a bird 2.5 m off
+            # that had left the 87° lens, its last range 1.4 s old and its passage known to
+            # ±3.7 m, was 'evaded' 0.3 s after it had passed (docs/measurements.md)
             return None
         if o.source == "image" and not o.reported and not (
                 c.unreported_looming_sigmas > 0 and o.tau_std_s > 0
