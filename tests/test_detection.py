@@ -415,16 +415,21 @@ def test_in_forward_flight_the_slow_difference_registers_the_grounds_parallax_ti
     closes head-on at 10.5 m/s and only grows. Over 0.2-0.4 s the ground's parallax defeats one
     homography, so the slow difference marks too much and is left out of every frame; with the
     tiles' residual shifts taken out it is kept in most frames, the ground is not in it, and
-    the bird's rim is while it is still under 8 px across in radius."""
-    from app.config import Config
+    the bird's rim is while it is still under 8 px across in radius. Through the colour lens,
+    where it was measured (the scene's sizes and parallax are the 69° lens's)."""
+    from dataclasses import replace
+
+    from app.config import CaptureConfig, Config
     from app.sim.fast import _Script
     from app.sim.simulate import Encounter, SimulatedCamera, world_for
+
+    colour = replace(Config(), capture=replace(CaptureConfig(), stream="color"))
 
     enc = Encounter(seed=1100116, kind="bird", object_speed_mps=10.53, approach_deg=-1.9, climb_deg=-2.8,
                     miss_dir_deg=102.0, size_m=0.47, grey=67, own_speed_mps=4.0, altitude_m=6.0)
 
     def fly(cfg: DetectionConfig) -> tuple[_SlowProbe, list[tuple[float, float, float, float] | None]]:
-        cam = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(Config(), enc),
+        cam = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(colour, enc),
                               paced=False)
         det, truth = _SlowProbe(cfg), []
         for frame in cam:

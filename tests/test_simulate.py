@@ -47,8 +47,8 @@ def test_the_infrared_imager_sees_87_degrees_in_grey_where_colour_sees_69() -> N
     enc = Encounter(seed=5, kind="ball", object_speed_mps=6.0, approach_deg=40.0, climb_deg=0.0,
                     miss_m=0.0, miss_dir_deg=0.0, size_m=0.3, grey=40, own_speed_mps=0.0,
                     altitude_m=8.0, t_cpa_s=3.0)
-    colour = world_for(Config(), enc)
-    infrared = world_for(replace(Config(), capture=replace(CaptureConfig(), stream="infrared")), enc)
+    colour = world_for(replace(Config(), capture=replace(CaptureConfig(), stream="color")), enc)
+    infrared = world_for(Config(), enc)  # the default stream
     c_lens, i_lens = colour.camera().color, infrared.camera().color
     # half-widths: atan(424 / 615) = 34.6°, atan(424 / 447) = 43.5° (D435i datasheet: 69° and 87°)
     assert math.degrees(math.atan(c_lens.ppx / c_lens.fx)) == pytest.approx(34.6, abs=0.1)
@@ -66,7 +66,7 @@ def test_the_infrared_imager_sees_87_degrees_in_grey_where_colour_sees_69() -> N
     assert int(grey[int(v), int(u)]) < 60  # the dark ball, on the grey frame
     # it is the colour world drawn through the wider lens, turned grey as perception does
     assert isinstance(infrared, Monochrome) and isinstance(colour, World)
-    fresh = world_for(replace(Config(), capture=replace(CaptureConfig(), stream="infrared")), enc)
+    fresh = world_for(Config(), enc)
     assert isinstance(fresh, Monochrome)  # the same seed: the same camera noise, frame for frame
     inner, _d, _s = fresh.world.render((0.0, 0.0, -8.0), 0.0, ball)
     assert inner.shape == (480, 848, 3)
