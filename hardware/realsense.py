@@ -204,7 +204,6 @@ class RealSenseSource(FrameSource):
         self.has_depth = True
         self.name = "d435i" if path is None else path.stem
         self.fps = float(cfg.depth_fps if cfg.stream == "infrared" else cfg.color_fps)
-        self.image_stream = cfg.stream  # what the source delivers (a recording: what it holds)
         self.restarts = 0  # pipeline restarts after a stall
         self.resets = 0  # USB hardware resets
         self.last_gyro: tuple[float, float, float] | None = None  # rad/s, with enable_imu
@@ -255,6 +254,7 @@ class RealSenseSource(FrameSource):
         if self.path is not None:
             self.fps = float(backend.color.fps()) or self.fps
         self.camera = camera_model(backend.color, backend.depth, backend.depth_scale)
+        # what the source delivers: the configured stream, or what a recording holds
         self.image_stream = "infrared" if backend.color.stream_type() == rs.stream.infrared else "color"
         if first:
             log.info("camera %s: %s %dx%d, depth %dx%d, depth scale %.4g m",

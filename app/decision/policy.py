@@ -576,11 +576,12 @@ class DecisionMaker:
     def _emergency(self, fresh: list[ObjectState], by_id: dict[int, ObjectState], t_s: float,
                    evading: int | None, last_seen: Callable[[ObjectState], float]) -> Command | None:
         """The emergency stop, or holding one, shared by both policies; None when neither.
+        ``fresh`` are the objects measured within max_depth_age_s and in front (Z > 0);
         ``last_seen`` is when a held object last counts as seen (depth, or image too)."""
         c = self.cfg
         # the distance, not Z: a wide lens holds an object passing 2 m abeam until its Z is
         # 0.3 m, and stopping then avoids nothing (open loop, 87° lens: 2 of 20 wide passes)
-        close = [o for o in fresh if 0 < o.z_m and o.range_m < c.emergency_m and o.track_id != evading]
+        close = [o for o in fresh if o.range_m < c.emergency_m and o.track_id != evading]
         if close:
             near = min(close, key=lambda o: o.range_m)
             self._engaged = _Engagement(STOP, near.track_id, (0.0, 0.0))

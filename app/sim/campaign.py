@@ -173,13 +173,13 @@ def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | Non
     return None
 
 
-
 def _lens(cfg: Config) -> str:
     """What the campaign's perception saw: the stream, its size and width across."""
     lens = lens_for(cfg)
     across = 2.0 * math.degrees(math.atan2(lens.width / 2.0, lens.fx))
     name = "infrared" if cfg.capture.stream == "infrared" else "colour"
     return f"{name} {lens.width}x{lens.height} ({across:.0f}° across)"
+
 
 def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterResult],
                  cfg: Config, wall_s: float, title: str = "Campaign",
