@@ -440,24 +440,28 @@ def write_realsense_recording(frames: Iterable[Frame], camera: CameraModel, fps:
     for sensor, profile in ((depth_sensor, d_profile), (color_sensor, c_profile)):
         sensor.open(profile)
         sensor.start(sink)
+    written = False
     try:
         for k, frame in enumerate(frames):
             stamp_ms = k * 1000.0 / fps
-            if frame.depth is not None:
-                depth = np.ascontiguousarray(frame.depth, np.uint16)
-                _push(rs, depth_sensor, d_profile, depth, 2, stamp_ms, k)
             color = np.ascontiguousarray(frame.color, np.uint8)
             if color.ndim != (2 if infrared else 3):
                 raise SourceError(f"{path}: frame {frame.index} is {color.shape}, not a "
                                   f"{'grey (H x W)' if infrared else 'BGR (H x W x 3)'} {stream} image")
+            if frame.depth is not None:
+                depth = np.ascontiguousarray(frame.depth, np.uint16)
+                _push(rs, depth_sensor, d_profile, depth, 2, stamp_ms, k)
             _push(rs, color_sensor, c_profile, color, c_bpp, stamp_ms, k)
             while sink.poll_for_frame():
                 pass  # the recorder has them; keep the queue from filling
+        written = True
     finally:
         for sensor in (depth_sensor, color_sensor):
             sensor.stop()
             sensor.close()
         del recorder  # closes the file
+        if not written:
+            path.unlink(missing_ok=True)  # no half-written recording left behind
     if not path.is_file() or path.stat().st_size == 0:
         raise SourceError(f"{path}: the RealSense recorder wrote nothing")
     return path

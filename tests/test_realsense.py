@@ -101,6 +101,7 @@ def test_a_colour_recording_configured_for_infrared_plays_its_colour(
 def test_writing_colour_frames_as_infrared_is_refused_by_name(tmp_path: Path) -> None:
     with pytest.raises(SourceError, match=r"frame 1 is \(480, 640, 3\), not a grey \(H x W\) infrared image"):
         write_realsense_recording(frames(2), CAMERA, 30.0, tmp_path / "bad.db3", stream="infrared")
+    assert not (tmp_path / "bad.db3").exists()  # nothing half-written left behind
     with pytest.raises(ValueError, match="stream 'thermal'"):
         write_realsense_recording(frames(2), CAMERA, 30.0, tmp_path / "bad2.db3", stream="thermal")
 
