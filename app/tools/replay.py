@@ -169,10 +169,12 @@ def write_decisions_csv(path: Path, rows: list[tuple[int, Command]]) -> None:
 class ProgressBar:
     """tqdm's bar over the frames of a replay (with its rate and ETA); on a terminal only."""
 
-    def __init__(self, label: str, stream: TextIO = sys.stderr) -> None:
+    def __init__(self, label: str, stream: TextIO | None = None) -> None:
         from tqdm import tqdm
 
-        self.bar = tqdm(desc=label, unit="frame", file=stream, disable=None, dynamic_ncols=True,
+        # sys.stderr when called, not when imported: a default bound at import keeps a stream
+        # that may since have been replaced and closed (a test's capture did)
+        self.bar = tqdm(desc=label, unit="frame", file=stream or sys.stderr, disable=None, dynamic_ncols=True,
                         mininterval=0.2)
 
     def __call__(self, done: int, total: int) -> None:
