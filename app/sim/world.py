@@ -10,7 +10,7 @@ What is drawn, far to near, and why:
 - **sky**: a brightness gradient with clouds on a cylinder around the vehicle (no parallax,
   turns with the heading), no depth (the D435i sees nothing there);
 - **ground**: a textured plane drawn through the homography a plane induces, with its true
-  depth per pixel (0 beyond ``max_depth_m``, 20 m, where a D435i's error reaches 1.4 m);
+  depth per pixel, with the D435i's error (1.4 m at 20 m), to the 65.5 m a uint16 frame holds;
 - **clutter**: trees (vertical slabs) at fixed places, which move against the ground and
   the sky as the vehicle moves: the parallax a single homography cannot explain;
 - **objects**: spheres (ball, bird, drone sized) with their depth;
@@ -94,9 +94,11 @@ class World:
     intrinsics: Intrinsics = field(default_factory=lambda: Intrinsics(640, 480, 615.0, 615.0, 319.5, 239.5))
     # Stereo has no range limit of its own (Intel's D400 tuning guide: at disparity shift 0
     # the farthest depth is unbounded); what limits it is the error, σ(z) above, 1.4 m at
-    # 20 m. The world returns depth to 20 m, the far end of what a decision can use (issue
-    # 18: 15-20 m), not the 10 m where Intel's datasheets stop quoting accuracy.
-    max_depth_m: float = 20.0
+    # 20 m, 5.8 m at 40 m. The world returns depth as far as a D435i frame can hold it
+    # (uint16 millimetres): a building on the horizon has a depth, far and coarse, as it has
+    # through a real D435i, not "no data" (at 20 m, as before, the decision could not tell
+    # the parallax on a far roof from an object in front of it).
+    max_depth_m: float = 65.535
 
     def __post_init__(self) -> None:
         rng = np.random.default_rng(self.style.seed)
