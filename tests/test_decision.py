@@ -73,6 +73,11 @@ def test_no_depth_pixels_mean_no_distance() -> None:
     assert object_depth(cl, zeros, CAM, 0.2, 10.0, 25, 6) is None
     far = np.full((480, 640), 15000, np.uint16)  # 15 m: beyond the trusted range
     assert object_depth(cl, far, CAM, 0.2, 10.0, 25, 6) is None
+    # a surface just beyond it, with a D435i's error: not its noise's near tail as a distance
+    rng = np.random.default_rng(0)
+    noisy = np.clip(rng.normal(10_600, 0.0036 * 10.6**2 * 1000, (480, 640)), 0, 65_535).astype(np.uint16)
+    assert (noisy[230:250, 310:330] <= 10_000).sum() >= 6  # enough of the blob's nearer than 10 m
+    assert object_depth(cl, noisy, CAM, 0.2, 10.0, 25, 6, CFG.depth_rms_per_m2) is None
     dm = DecisionMaker(CFG, CAM)
     from app.perception.tracking import TrackReport
     tr = TrackReport(1, 320.0, 240.0, 0, 0, (310, 230, 20, 20), True, 0.0, 10, cl, ())

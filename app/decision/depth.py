@@ -11,7 +11,12 @@ of them at that distance lie (not the blob's centre: a frame difference's blob h
 object's old place too, and a blob merged with the ground or a tree behind it is centred
 between the two).
 
-Depth 0 is "no data", never "zero metres"; depths outside the trusted range are dropped.
+Depth 0 is "no data", never "zero metres". The near surface is taken over the blob's depths
+to the trusted range's end and its error band beyond it (``NEAR_BAND_SIGMAS`` range errors), and
+farther than the trusted range it gives no distance: taken over the trusted range alone, a
+surface just beyond it gave its noise's near tail as a distance (a building 17.7 m off "at
+15 m": object-free flight, seed 43), and taken over every depth the frame holds, the ground
+30-40 m behind a ball outnumbered the ball in a blob merged with the horizon (open loop).
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ NEAR_BAND_SIGMAS = 3.0
 # spans a few centimetres of depth, and the D435i errs by under 2 % at 2 m (Intel's D400
 # datasheet), m
 NEAR_BAND_FLOOR_M = 0.1
+# The farthest depth a D435i frame holds: uint16 millimetres, m
+DEPTH_FAR_M = 65.535
 
 
 def range_error_m(z_m: float, rms_per_m2: float, floor_m: float) -> float:
@@ -46,6 +53,33 @@ class ObjectDepth:
     near_pixels: int = 0  # of them, those at the object's distance (the bearing's)
 
 
+def blob_points(cluster: Cluster, depth: np.ndarray, cam: CameraModel, min_m: float,
+                min_pixels: int) -> np.ndarray | None:
+    """The depth points (colour-camera XYZ, m; N x 3) that land on the cluster's blob, at any
+    depth the frame holds from ``min_m``; None when fewer than ``min_pixels``."""
+    roi = _depth_roi(cluster.box, cam, min_m, DEPTH_FAR_M, depth.shape)
+    if roi is None:
+        return None
+    x0, y0, x1, y1 = roi
+    patch = depth[y0:y1, x0:x1].astype(np.float64) * cam.depth_scale_m
+    vs, us = np.nonzero(patch >= min_m)
+    if len(us) < min_pixels:
+        return None
+    z = patch[vs, us]
+    pts_d = cam.depth.deproject(us + x0, vs + y0, z)
+    pts_c = cam.depth_to_color_points(pts_d)
+    pts_c = pts_c[pts_c[:, 2] > 0]
+    uv = np.round(cam.color.project(pts_c)).astype(np.int64)
+    mask, (bx, by) = cluster.pixel_mask()
+    mu, mv = uv[:, 0] - bx, uv[:, 1] - by
+    inside = (mu >= 0) & (mv >= 0) & (mu < mask.shape[1]) & (mv < mask.shape[0])
+    on_blob = np.zeros(len(uv), bool)
+    on_blob[inside] = mask[mv[inside], mu[inside]] > 0
+    if on_blob.sum() < min_pixels:
+        return None
+    return pts_c[on_blob]
+
+
 def object_depth(
     cluster: Cluster,
     depth: np.ndarray,
@@ -57,7 +91,9 @@ def object_depth(
     rms_per_m2: float = 0.0,
     max_width_m: float = math.inf,
 ) -> ObjectDepth | None:
-    """The object's distance, or None when too few trusted depth pixels land on its blob.
+    """The object's distance, or None when too few depth pixels land on its blob or their
+    near surface (the ``percentile`` of their depths to ``max_m`` and its error band beyond)
+    is farther than ``max_m``.
 
     Its position: the mean bearing of the blob's depth points within the range error of that
     distance (``NEAR_BAND_SIGMAS`` x max(``NEAR_BAND_FLOOR_M``, ``rms_per_m2`` · z²)), at that
@@ -66,29 +102,15 @@ def object_depth(
     not one object's surface either (a blob spread over the frame by the ground's parallax has
     near points metres apart, whose mean jumps from frame to frame as they come and go: in an
     object-free flight, seed 43, that read as a 27 m/s approach and an emergency stop)."""
-    roi = _depth_roi(cluster.box, cam, min_m, max_m, depth.shape)
-    if roi is None:
+    pts = blob_points(cluster, depth, cam, min_m, min_pixels)
+    if pts is None:
         return None
-    x0, y0, x1, y1 = roi
-    patch = depth[y0:y1, x0:x1].astype(np.float64) * cam.depth_scale_m
-    vs, us = np.nonzero((patch >= min_m) & (patch <= max_m))
-    if len(us) < min_pixels:
+    pts = pts[pts[:, 2] <= max_m + NEAR_BAND_SIGMAS * range_error_m(max_m, rms_per_m2, NEAR_BAND_FLOOR_M)]
+    if len(pts) < min_pixels:
         return None
-    z = patch[vs, us]
-    pts_d = cam.depth.deproject(us + x0, vs + y0, z)
-    pts_c = cam.depth_to_color_points(pts_d)
-    front = pts_c[:, 2] > 0
-    pts_c = pts_c[front]
-    uv = np.round(cam.color.project(pts_c)).astype(np.int64)
-    mask, (bx, by) = cluster.pixel_mask()
-    mu, mv = uv[:, 0] - bx, uv[:, 1] - by
-    inside = (mu >= 0) & (mv >= 0) & (mu < mask.shape[1]) & (mv < mask.shape[0])
-    on_blob = np.zeros(len(uv), bool)
-    on_blob[inside] = mask[mv[inside], mu[inside]] > 0
-    if on_blob.sum() < min_pixels:
-        return None
-    pts = pts_c[on_blob]
     z_obj = float(np.percentile(pts[:, 2], percentile))
+    if z_obj > max_m:
+        return None
     band = NEAR_BAND_SIGMAS * range_error_m(z_obj, rms_per_m2, NEAR_BAND_FLOOR_M)
     near = pts[np.abs(pts[:, 2] - z_obj) <= band]
     xyz = None
@@ -100,7 +122,7 @@ def object_depth(
     if xyz is None:
         c = cam.color.deproject(np.array([cluster.x]), np.array([cluster.y]), np.array([z_obj]))[0]
         xyz = (float(c[0]), float(c[1]), float(c[2]))
-    return ObjectDepth(z_obj, xyz, int(on_blob.sum()), len(near))
+    return ObjectDepth(z_obj, xyz, len(pts), len(near))
 
 
 def _depth_roi(
