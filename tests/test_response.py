@@ -3,6 +3,7 @@ and the escape away from where an object will pass (not from where it is now).""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -147,6 +148,13 @@ def test_the_altitude_floor_forbids_going_down_even_when_that_is_best() -> None:
     assert high.down_mps > 0
 
 
+def _ball_box(xyz: np.ndarray, d_m: float = 0.3) -> tuple[float, float, float, float]:
+    """The exact box (x, y, w, h px) of a ball of ``d_m`` at camera ``xyz`` (m)."""
+    x, y, z = xyz
+    s = K.fx * d_m / z
+    return K.fx * x / z + K.ppx - s / 2, K.fy * y / z + K.ppy - s / 2, s, s
+
+
 def _report(tid: int, box: tuple[float, float, float, float], t: float) -> TrackReport:
     x, y, w, h = box
     cluster = Cluster(x + w / 2, y + h / 2, (int(round(x)), int(round(y)), int(round(w)), int(round(h))),
@@ -165,11 +173,7 @@ def test_end_to_end_a_crossing_ball_seen_in_the_image_only_is_passed_behind(seed
     first = None
     for i in range(56):  # until 0.13 s before it passes
         t = i / 30.0
-        x, y, z = p0 + v * t
-        s = K.fx * 0.3 / z
-        u, w = K.fx * x / z + K.ppx, K.fy * y / z + K.ppy
-        box = (u - s / 2 + rng.normal(0, 1), w - s / 2 + rng.normal(0, 1), s + rng.normal(0, 1),
-               s + rng.normal(0, 1))
+        box = tuple(b + n for b, n in zip(_ball_box(p0 + v * t), rng.normal(0, 1, 4), strict=True))
         cmd, objects = dm.step([_report(1, box, t)], None, t, ALT)
         if cmd.action != NONE and first is None:
             first = (t, cmd)
@@ -410,3 +414,40 @@ def test_a_depth_track_that_is_no_longer_measured_starts_no_evasion() -> None:
     assert dm.assess(fresh) is not None
     cmd = dm.decide_response([fresh], t, ALT)
     assert cmd.action == EVADE and "(depth)" in cmd.reason
+
+
+def test_an_image_only_blob_over_a_far_surface_is_that_surface_not_an_object() -> None:
+    """What an image-only blob shows in depth: farther than the largest plausible object of its
+    angular size could be (here 1.0 m / 0.03 rad = 33 m), it is that surface (a roof's edge on
+    the horizon), and its looming starts nothing; nearer, an object may be in front of it."""
+    far, near = 60.0, 20.0
+    for surface, evades in ((None, True), (near, True), (far, False)):
+        dm = DecisionMaker(CFG, CAM)
+        cmd = frames(dm, lambda s, t, m=surface: [dataclasses.replace(
+            image_obj(0.8 - s, (0.0, 0.0), t=t), surface_m=m)])
+        assert (cmd is not None and cmd.action == EVADE) is evades, surface
+
+
+def _blob_report(tid: int, box: tuple[float, float, float, float], t: float) -> TrackReport:
+    """A reported track whose blob fills its box (a cluster with its rectangle's contour)."""
+    x, y, w, h = (int(round(v)) for v in box)
+    contour = np.array([[[x, y]], [[x + w - 1, y]], [[x + w - 1, y + h - 1]], [[x, y + h - 1]]], np.int32)
+    cluster = Cluster(x + w / 2, y + h / 2, (x, y, w, h), w * h, (contour,))
+    return TrackReport(tid, x + w / 2, y + h / 2, 0.0, 0.0, (x, y, w, h), True, t, 10, cluster, ())
+
+
+def test_end_to_end_a_looming_blob_whose_depth_is_a_far_wall_is_left_alone() -> None:
+    """The boxes of an approach on a collision course, seen with no depth, are evaded; the
+    same boxes over a depth frame that reads 60 m on them (the building they are the edge of)
+    are not."""
+    p0, v = np.array([0.0, 0.0, 12.0]), np.array([0.0, 0.0, -8.0])
+    wall = np.full((K.height, K.width), 60_000, np.uint16)  # mm
+    for depth, evades in ((None, True), (wall, False)):
+        dm = DecisionMaker(CFG, CAM)
+        first = None
+        for i in range(40):  # until 0.2 s before it passes
+            t = i / 30.0
+            cmd, _ = dm.step([_blob_report(1, _ball_box(p0 + v * t), t)], depth, t, ALT)
+            if cmd.action != NONE and first is None:
+                first = cmd
+        assert (first is not None and first.action == EVADE) is evades

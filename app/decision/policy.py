@@ -41,7 +41,7 @@ from filterpy.kalman import KalmanFilter
 
 from app.camera import CameraModel
 from app.config import DecisionConfig, DetectionConfig, avoid_distance_m
-from app.decision.depth import object_depth, range_error_m
+from app.decision.depth import blob_points, object_depth, range_error_m
 from app.decision.ego import EgoMotion, static_fit
 from app.decision.looming import ImageEstimate, LoomingEstimator
 from app.decision.response import ResponseModel
@@ -78,6 +78,10 @@ COURSE_STEPS = 24  # an escape is judged at this many instants along each threat
 # An image-only object that moves as static structure (app.decision.ego) is cleared when its
 # passage misses the largest plausible object's clearance by this many standard errors
 STATIC_CLEAR_SIGMAS = 2.0
+# An object seen in the image only is the surface behind its blob when the blob's depth lies
+# farther than the largest plausible object of its angular size could be, by this many of the
+# depth's standard errors (in inverse depth, where a stereo camera's error is constant)
+SURFACE_SIGMAS = 3.0
 # Escapes whose worst-case misses differ by less than this are equal: then the one that
 # passes behind a crossing object (against its lateral motion) is taken, m
 EQUAL_MISS_M = 0.05
@@ -132,6 +136,9 @@ class ObjectState:
     # whatever the 3-D track was started from) and its standard error, m/s; None: too few
     range_rate_mps: float | None = None
     range_rate_std_mps: float | None = None
+    # seen in the image only: the depth of what its blob shows (its near surface, as
+    # object_depth takes it, at any range the camera returns), m
+    surface_m: float | None = None
 
     def passages(self, d_min: float, d_max: float
                  ) -> list[tuple[float, tuple[float, float, float], float]]:
@@ -436,7 +443,13 @@ class DecisionMaker:
                 image = image_of(tid)
                 if image is not None:
                     o = self._image_only(tid, image, t_s, ego)
-                    out.append(dataclasses.replace(o, reported=t.reported))
+                    surface = None
+                    if depth is not None and o.tau_s is not None and t.matched and t.cluster is not None:
+                        # (only where the image says it comes in: what is behind it?)
+                        pts = blob_points(t.cluster, depth, self.camera, c.min_range_m, c.min_depth_pixels)
+                        if pts is not None:
+                            surface = float(np.percentile(pts[:, 2], c.depth_percentile))
+                    out.append(dataclasses.replace(o, reported=t.reported, surface_m=surface))
         return out
 
     def _image_only(self, tid: int, e: ImageEstimate, t_s: float, ego: EgoMotion | None = None
@@ -625,6 +638,15 @@ class DecisionMaker:
         if (o.source == "image" and c.image_max_passage_std_m > 0 and o.miss_sizes_std is not None
                 and o.miss_sizes_std * c.object_diameter_min_m > c.image_max_passage_std_m):
             return None  # where it passes is unknown to the image alone: wait for a fit or a range
+        if o.source == "image" and o.surface_m is not None and o.z_m > 0:
+            # Its blob shows a surface farther than an object of its angular size can be (the
+            # range of the largest plausible one): the blob is that surface, a building's or a
+            # tree's edge against the sky that parallax moves, not an object in front of it
+            # (object-free flight, infrared, seeds 43 and 53: 3 of the 8 flights whose fast run
+            # evaded, each on the edge of a building that stood above the horizon)
+            farthest = c.object_diameter_max_m / c.object_diameter_min_m * o.z_m
+            if 1.0 / o.surface_m + SURFACE_SIGMAS * c.depth_rms_per_m2 < 1.0 / farthest:
+                return None
         if o.static_miss_m is not None and o.static_miss_std_m is not None:
             widest = c.vehicle_radius_m + c.object_diameter_max_m / 2 + c.clearance_margin_m
             if o.static_miss_m - STATIC_CLEAR_SIGMAS * o.static_miss_std_m > widest:
