@@ -207,3 +207,31 @@ def test_sizes_that_jump_like_clutter_give_no_time_to_contact(seed: int) -> None
     ej, ec = jumpy.estimate(1.0), clean.estimate(1.0)
     assert ej is not None and ej.size_chi2 > 9.0 and ej.tau_s is None and ej.miss_sizes is None
     assert ec is not None and ec.tau_s is not None and ec.size_chi2 <= 9.0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_blob_that_jumps_to_a_new_size_and_stays_there_does_not_loom(seed: int) -> None:
+    """A static blob (a roof's edge against the sky) that merges with the structure beside it
+    and keeps that size: one level shift, not an approach, however a straight line through
+    the window slopes; an approaching object measured as well has its τ; and an approach
+    whose box jumps once and keeps its new proportion (merged with its own ghost) is fitted
+    again after the jump, with its true τ."""
+    rng = np.random.default_rng(seed)
+    step, real, merged = (LoomingEstimator(K, window_s=1.0) for _ in range(3))
+    p0, v = np.array([0.5, 0.2, 12.0]), np.array([0.0, 0.0, -6.0])
+    for i in range(31):
+        t = i / FPS
+        n = rng.normal(0, 1.0, 4)
+        w, h = (10.0, 12.0) if i < 18 else (27.0, 15.0)  # the roof's edge, then the roof
+        step.add(t, (300 + n[0], 200 + n[1], w + n[2], h + n[3]))
+        x, y, w, h = box_of(p0 + v * t, 0.3)
+        real.add(t, (x + n[0], y + n[1], w + n[2], h + n[3]))
+        k = 1.6 if i >= 12 else 1.0  # from frame 12 on, with its ghost beside it: 1.6 times as wide
+        merged.add(t, (x + n[0], y + n[1], w * k + n[2], h + n[3]))
+    es, er, em = step.estimate(1.0), real.estimate(1.0), merged.estimate(1.0)
+    assert es is not None and es.tau_s is None
+    tau_true = 6.0 / 6.0
+    assert er is not None and er.tau_s is not None and er.tau_std_s is not None
+    assert er.tau_s == pytest.approx(tau_true, abs=3 * er.tau_std_s)
+    assert em is not None and em.tau_s is not None and em.tau_std_s is not None
+    assert em.tau_s == pytest.approx(tau_true, abs=3 * em.tau_std_s)
