@@ -54,15 +54,16 @@ class ObjectDepth:
 
 
 def blob_points(cluster: Cluster, depth: np.ndarray, cam: CameraModel, min_m: float,
-                min_pixels: int) -> np.ndarray | None:
-    """The depth points (colour-camera XYZ, m; N x 3) that land on the cluster's blob, at any
-    depth the frame holds from ``min_m``; None when fewer than ``min_pixels``."""
-    roi = _depth_roi(cluster.box, cam, min_m, DEPTH_FAR_M, depth.shape)
+                min_pixels: int, max_m: float = DEPTH_FAR_M) -> np.ndarray | None:
+    """The depth points (colour-camera XYZ, m; N x 3) that land on the cluster's blob, at
+    depths from ``min_m`` to ``max_m`` (by default any the frame holds); None when fewer than
+    ``min_pixels``."""
+    roi = _depth_roi(cluster.box, cam, min_m, max_m, depth.shape)
     if roi is None:
         return None
     x0, y0, x1, y1 = roi
     patch = depth[y0:y1, x0:x1].astype(np.float64) * cam.depth_scale_m
-    vs, us = np.nonzero(patch >= min_m)
+    vs, us = np.nonzero((patch >= min_m) & (patch <= max_m))
     if len(us) < min_pixels:
         return None
     z = patch[vs, us]
@@ -102,11 +103,9 @@ def object_depth(
     not one object's surface either (a blob spread over the frame by the ground's parallax has
     near points metres apart, whose mean jumps from frame to frame as they come and go: in an
     object-free flight, seed 43, that read as a 27 m/s approach and an emergency stop)."""
-    pts = blob_points(cluster, depth, cam, min_m, min_pixels)
+    band_end = max_m + NEAR_BAND_SIGMAS * range_error_m(max_m, rms_per_m2, NEAR_BAND_FLOOR_M)
+    pts = blob_points(cluster, depth, cam, min_m, min_pixels, band_end)
     if pts is None:
-        return None
-    pts = pts[pts[:, 2] <= max_m + NEAR_BAND_SIGMAS * range_error_m(max_m, rms_per_m2, NEAR_BAND_FLOOR_M)]
-    if len(pts) < min_pixels:
         return None
     z_obj = float(np.percentile(pts[:, 2], percentile))
     if z_obj > max_m:

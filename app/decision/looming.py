@@ -163,19 +163,29 @@ def _level_shift(t: np.ndarray, y: np.ndarray, sigma: np.ndarray) -> int | None:
     n = len(t)
     if n < 8:
         return None
-    w = 1.0 / sigma
-    base = np.column_stack([np.ones(n), t - t.mean()]) * w[:, None]
-    yw = y * w
-    line = float(np.sum((yw - base @ np.linalg.lstsq(base, yw, rcond=None)[0]) ** 2))
-    # every split at once: the normal equations of [1, t, step at k], weighted, stacked
+    # Weighted least squares; the step's gain over the line for every split at once, by
+    # partialling the line out of it (Frisch-Waugh): with r the line's residuals and s_k the
+    # step's regressor, chi2 falls by (s_k' W r)^2 / (s_k' W s_k - b_k' A^-1 b_k), where
+    # A = X' W X and b_k = X' W s_k, all suffix sums
+    w = 1.0 / sigma**2
+    dt = t - float(np.average(t, weights=w))
+    a0, a1, a2 = float(w.sum()), float((w * dt).sum()), float((w * dt * dt).sum())
+    det = a0 * a2 - a1 * a1
+    if det <= 0:
+        return None
+    c0 = (a2 * float((w * y).sum()) - a1 * float((w * dt * y).sum())) / det
+    c1 = (a0 * float((w * dt * y).sum()) - a1 * float((w * y).sum())) / det
+    r = y - c0 - c1 * dt
+    line = float((w * r * r).sum())
+    s0 = np.cumsum((w)[::-1])[::-1]
+    s1 = np.cumsum((w * dt)[::-1])[::-1]
+    sr = np.cumsum((w * r)[::-1])[::-1]
     ks = np.arange(3, n - 2)
-    steps = (np.arange(n)[None, :] >= ks[:, None]) * w[None, :]  # (splits, n)
-    x = np.concatenate([np.broadcast_to(base, (len(ks), n, 2)), steps[:, :, None]], axis=2)
-    xt = np.transpose(x, (0, 2, 1))
-    beta = np.linalg.solve(xt @ x, (xt @ yw)[:, :, None])
-    chi2 = np.sum((yw[None, :] - (x @ beta)[:, :, 0]) ** 2, axis=1)
-    k = int(np.argmin(chi2))
-    best, at = float(chi2[k]), int(ks[k])
+    b0, b1, rk = s0[ks], s1[ks], sr[ks]
+    den = b0 - (a2 * b0 * b0 - 2.0 * a1 * b0 * b1 + a0 * b1 * b1) / det
+    gain = np.where(den > 1e-12 * b0, rk * rk / np.maximum(den, 1e-300), 0.0)
+    j = int(np.argmax(gain))
+    best, at = line - float(gain[j]), int(ks[j])
     # the noise at least as stated (as _wfit scales errors up, never down)
     if (line - best) / max(1.0, best / (n - 3)) <= STEP_F:
         return None
@@ -330,15 +340,20 @@ class LoomingEstimator:
         big = size >= self.min_size_px
         sized = int(big.sum()) >= self.min_samples
         keep = big if sized else np.ones_like(big)
-        if sized:
-            idx = np.flatnonzero(keep)
-            k = _level_shift(t[idx], qz[idx], f * sig / size[idx] ** 2)
-            if k is not None:  # the sizes jumped: the course starts again after the jump
-                keep = keep & (t >= t[idx[k]])
-                sized = int(keep.sum()) >= self.min_samples
         lz = _wfit(t[keep], qz[keep], f * sig / size[keep] ** 2)
         if lz is None:
             return None
+        if sized and lz.slope < 0:  # (a jump matters only where it would read as looming)
+            idx = np.flatnonzero(keep)
+            k = _level_shift(t[idx], qz[idx], f * sig / size[idx] ** 2)
+            if k is not None:  # the sizes jumped: the course starts again after the jump
+                after = keep & (t >= t[idx[k]])
+                refit = (_wfit(t[after], qz[after], f * sig / size[after] ** 2)
+                         if int(after.sum()) >= self.min_samples else None)
+                if refit is None:  # too little since: no time to contact yet (the bearing stands)
+                    sized = False
+                else:
+                    lz = refit
         return lz, qz, np.full_like(size, sig), sized
 
     def _photometric_fit(self, t: np.ndarray, size: np.ndarray, f: float,
