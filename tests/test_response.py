@@ -156,9 +156,12 @@ def _ball_box(xyz: np.ndarray, d_m: float = 0.3) -> tuple[float, float, float, f
 
 
 def _report(tid: int, box: tuple[float, float, float, float], t: float) -> TrackReport:
+    """A reported track whose blob fills its box (a cluster with its rectangle's contour)."""
     x, y, w, h = box
-    cluster = Cluster(x + w / 2, y + h / 2, (int(round(x)), int(round(y)), int(round(w)), int(round(h))),
-                      int(w * h), ())
+    bx, by, bw, bh = int(round(x)), int(round(y)), int(round(w)), int(round(h))
+    contour = np.array([[[bx, by]], [[bx + bw - 1, by]], [[bx + bw - 1, by + bh - 1]], [[bx, by + bh - 1]]],
+                       np.int32)
+    cluster = Cluster(x + w / 2, y + h / 2, (bx, by, bw, bh), bw * bh, (contour,))
     return TrackReport(tid, x + w / 2, y + h / 2, 0.0, 0.0, (x, y, w, h), True, t, 10, cluster, ())
 
 
@@ -428,14 +431,6 @@ def test_an_image_only_blob_over_a_far_surface_is_that_surface_not_an_object() -
         assert (cmd is not None and cmd.action == EVADE) is evades, surface
 
 
-def _blob_report(tid: int, box: tuple[float, float, float, float], t: float) -> TrackReport:
-    """A reported track whose blob fills its box (a cluster with its rectangle's contour)."""
-    x, y, w, h = (int(round(v)) for v in box)
-    contour = np.array([[[x, y]], [[x + w - 1, y]], [[x + w - 1, y + h - 1]], [[x, y + h - 1]]], np.int32)
-    cluster = Cluster(x + w / 2, y + h / 2, (x, y, w, h), w * h, (contour,))
-    return TrackReport(tid, x + w / 2, y + h / 2, 0.0, 0.0, (x, y, w, h), True, t, 10, cluster, ())
-
-
 def test_end_to_end_a_looming_blob_whose_depth_is_a_far_wall_is_left_alone() -> None:
     """The boxes of an approach on a collision course, seen with no depth, are evaded; the
     same boxes over a depth frame that reads 60 m on them (the building they are the edge of)
@@ -447,7 +442,7 @@ def test_end_to_end_a_looming_blob_whose_depth_is_a_far_wall_is_left_alone() -> 
         first = None
         for i in range(40):  # until 0.2 s before it passes
             t = i / 30.0
-            cmd, _ = dm.step([_blob_report(1, _ball_box(p0 + v * t), t)], depth, t, ALT)
+            cmd, _ = dm.step([_report(1, _ball_box(p0 + v * t), t)], depth, t, ALT)
             if cmd.action != NONE and first is None:
                 first = cmd
         assert (first is not None and first.action == EVADE) is evades
