@@ -235,3 +235,50 @@ def test_a_blob_that_jumps_to_a_new_size_and_stays_there_does_not_loom(seed: int
     assert er.tau_s == pytest.approx(tau_true, abs=3 * er.tau_std_s)
     assert em is not None and em.tau_s is not None and em.tau_std_s is not None
     assert em.tau_s == pytest.approx(tau_true, abs=3 * em.tau_std_s)
+
+
+def test_a_track_that_moves_to_another_blob_starts_its_course_again() -> None:
+    """A track on a static blob (a tree's top) that passes, through a merge, to an approaching
+    ball 0.3 rad away: the course is the ball's from the jump on, its bearing the ball's, not
+    a line through both."""
+    rng = np.random.default_rng(4)
+    est = LoomingEstimator(K, window_s=1.0)
+    p0, v = np.array([1.6, 0.1, 12.0]), np.array([0.0, 0.0, -6.0])
+    for i in range(31):
+        t = i / FPS
+        n = rng.normal(0, 1.0, 4)
+        if i < 14:
+            box = (250 + n[0], 230 + n[1], 12 + n[2], 10 + n[3])  # the tree's top
+        else:
+            x, y, w, h = box_of(p0 + v * t, 0.3)
+            box = (x + n[0], y + n[1], w + n[2], h + n[3])
+        est.add(t, box)
+    e = est.estimate(1.0)
+    p = p0 + v * 1.0
+    assert e is not None
+    assert e.bearing[0] == pytest.approx(p[0] / p[2], abs=0.01)
+    assert e.bearing[1] == pytest.approx(p[1] / p[2], abs=0.01)
+    assert e.tau_s is not None and e.tau_std_s is not None
+    assert e.tau_s == pytest.approx(1.0, abs=3 * e.tau_std_s)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_box_merged_with_the_structure_below_for_a_few_frames_keeps_the_bearing(seed: int) -> None:
+    """An approaching ball whose blob merges for single frames with a tree below it (a box
+    8 times as tall, its centre lower): its sizes no longer keep to a course (no τ), but its
+    bearing stays the ball's, to a few pixels, not a ratio of two broken lines."""
+    rng = np.random.default_rng(seed)
+    est = LoomingEstimator(K, window_s=1.0)
+    p0, v = np.array([-2.4, 0.2, 9.0]), np.array([0.0, 0.0, -3.0])
+    for i in range(31):
+        t = i / FPS
+        n = rng.normal(0, 1.0, 4)
+        x, y, w, h = box_of(p0 + v * t, 0.3)
+        if i in (5, 12, 19, 26, 29):
+            y, h = y, 8 * h  # merged with the tree under it
+        est.add(t, (x + n[0], y + n[1], w + n[2], h + n[3]))
+    e = est.estimate(1.0)
+    p = p0 + v * 1.0
+    assert e is not None
+    assert e.bearing[0] == pytest.approx(p[0] / p[2], abs=0.01)
+    assert e.bearing[1] == pytest.approx(p[1] / p[2], abs=0.02)

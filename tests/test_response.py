@@ -446,3 +446,33 @@ def test_end_to_end_a_looming_blob_whose_depth_is_a_far_wall_is_left_alone() -> 
             if cmd.action != NONE and first is None:
                 first = cmd
         assert (first is not None and first.action == EVADE) is evades
+
+
+def test_a_blob_whose_size_keeps_no_course_gives_no_passage_from_its_bearing_rate() -> None:
+    """A ball 6 m off straddling the horizon, its depth track closing in 1.2 s and passing
+    0.2 m to the left. Its blob merges with the horizon's edge from frame to frame: its sizes
+    keep to no course (no looming τ) and its centre drifts right with the merge. The passage
+    is the depth track's, not the drifting bearing's rate times τ (which says 0.4 m to the
+    right, and would send the escape left, into it); the same blob keeping one size has its
+    bearing rate taken."""
+    from app.decision.looming import ImageEstimate
+
+    z, tau = 6.0, 1.2
+    dm = DecisionMaker(CFG, CAM)
+    depth = ObjectState(1, (1.0, 0.0, z), 0.0, True, z / tau, tau, (-0.2, 0.0), tau_s=tau,
+                        tau_std_s=0.1, crossing_std_m=0.3, closing_std_mps=1.0)
+
+    def image(chi2: float) -> ImageEstimate:
+        size_rad, rate = 0.05, 0.4 / (z * tau)  # the bearing rate of a passage 0.4 m right
+        return ImageEstimate(0.0, 20, (1.0 / z, 0.0), (rate, 0.0), size_rad, 0.1, 0.2, None, None,
+                             None, None, 0.002, size_chi2=chi2)
+
+    broken = dm._fuse(depth, image(240.0), 1)
+    assert broken.source == "fused" and broken.miss_sizes is None and broken.course_sizes is None
+    (_, passage, _std), = broken.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert passage[:2] == pytest.approx((-0.2, 0.0))
+    escape = dm._escape([broken], None, True)
+    assert escape is not None and escape[0] > 0  # right: away from where it passes
+    kept = dm._fuse(depth, image(1.5), 1)
+    assert kept.miss_sizes is not None and kept.diameter_m is not None
+    assert kept.miss_sizes[0] * kept.diameter_m == pytest.approx(0.4, abs=0.01)

@@ -506,9 +506,13 @@ class DecisionMaker:
             return dataclasses.replace(o, source="fused", tau_s=tau, tau_std_s=tau_std,
                                        diameter_m=self.cfg.object_diameter_max_m, seen_s=seen)
         miss, miss_std = e.miss_sizes, e.miss_sizes_std
-        if miss is None and tau is not None and tau > 0 and tau_std is not None:
+        if (miss is None and tau is not None and tau > 0 and tau_std is not None
+                and e.size_chi2 <= self.cfg.looming_max_chi2):
             # no looming yet (a crossing object closes slowly) but depth gives τ: the passage
-            # from the image's bearing rate with the depth's τ (X_c / D = τ · b' / θ)
+            # from the image's bearing rate with the depth's τ (X_c / D = τ · b' / θ), when
+            # the blob keeps to one object's size (one that jumps, merged with the horizon or
+            # a tree, moves its centre with it: a ball on the horizon read 0.06 rad/s to the
+            # right while it moved 0.01 to the left, open loop)
             miss = (tau * e.bearing_rate[0] / e.size_rad, tau * e.bearing_rate[1] / e.size_rad)
             miss_std = math.hypot(tau * e.bearing_rate_std / e.size_rad,
                                   math.hypot(*miss) * tau_std / tau)
