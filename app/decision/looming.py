@@ -158,16 +158,31 @@ def _wfit(t: np.ndarray, y: np.ndarray, sigma: np.ndarray) -> _Line | None:
     return None
 
 
-def _inliers(t: np.ndarray, y: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """The samples within 4 robust standard errors (at least ``sigma``) of the Theil-Sen line
-    (the median of the pairwise slopes): every outlier at once, where :func:`_wfit` drops
-    one, and however many there are up to nearly a third."""
-    i, j = np.triu_indices(len(t), 1)
-    dt = t[j] - t[i]
-    slope = float(np.median((y[j] - y[i])[dt > 0] / dt[dt > 0])) if np.any(dt > 0) else 0.0
-    r = y - slope * t
-    r = (r - float(np.median(r))) / sigma
-    return np.abs(r) <= 4.0 * max(1.0, 1.4826 * float(np.median(np.abs(r))))
+def _robust_line(t: list[float], y: list[float], sigma: float) -> _Line | None:
+    """A line through a few samples (each ``sigma``) that no minority of outliers moves: the
+    Theil-Sen slope (the median of the pairwise slopes) picks the samples within 4 robust
+    errors of it (at least ``sigma``), and least squares runs through those; the errors are
+    scaled up by the residuals, never down. Plain Python: a handful of samples, every frame."""
+    n = len(t)
+    slopes = sorted((y[j] - y[i]) / (t[j] - t[i]) for i in range(n) for j in range(i + 1, n) if t[j] > t[i])
+    if not slopes:
+        return None
+    slope = slopes[len(slopes) // 2]
+    r = sorted(v - slope * u for u, v in zip(t, y, strict=True))
+    mid = r[n // 2]
+    scale = max(sigma, 1.4826 * sorted(abs(v - mid) for v in r)[n // 2])
+    keep = [(u, v) for u, v in zip(t, y, strict=True) if abs(v - slope * u - mid) <= 4.0 * scale]
+    if len(keep) < 3:
+        return None
+    tm = sum(u for u, _ in keep) / len(keep)
+    ym = sum(v for _, v in keep) / len(keep)
+    stt = sum((u - tm) ** 2 for u, _ in keep)
+    if stt <= 0:
+        return None
+    b = sum((u - tm) * (v - ym) for u, v in keep) / stt
+    chi2 = sum((v - ym - b * (u - tm)) ** 2 for u, v in keep) / sigma**2 / max(1, len(keep) - 2)
+    var = sigma**2 * max(1.0, chi2)
+    return _Line(tm, ym, b, var / len(keep), var / stt, chi2, len(keep) - 2)
 
 
 def _level_shift(t: np.ndarray, y: np.ndarray, sigma: np.ndarray) -> int | None:
@@ -312,7 +327,13 @@ class LoomingEstimator:
         # whichever way q_z is known
         fitted = lz.mean + lz.slope * (t - lz.t_mean)
         qz = np.where(fitted > 0.25 * qz, fitted, qz)  # (not where the course has passed the plane)
-        holds = lz.chi2 <= self.max_chi2  # the sizes keep to a course
+        # A course only when the sizes keep to one: clutter's blobs (a cloud's edge, parallax)
+        # change size by jumps that no constant-velocity approach makes (measured in the closed
+        # loop: real objects 0.3-3.6, the clutter that evaded in object-free flight 7-820);
+        # a time to contact only when it clearly expands.
+        holds = lz.chi2 <= self.max_chi2
+        looms = (holds and sized and lz.slope < 0
+                 and -lz.slope > self.min_expansion_sigmas * math.sqrt(lz.var_slope))
         lines, direct = [], []
         for axis in (0, 1):
             c, fl = (k.ppx, k.fx) if axis == 0 else (k.ppy, k.fy)
@@ -324,10 +345,11 @@ class LoomingEstimator:
             b = (np.array([s.u if axis == 0 else s.v for s in ss]) - c) / fl
             q = b * qz
             sq = qz * np.sqrt((sig / fl) ** 2 + (b * qz * sizes_sig / f) ** 2)
-            if may_restart and holds:
+            if may_restart and looms:
                 # the bearing's course jumps to a new level and stays: the track moved to
                 # another blob (through a merge with it: a tree's blob 0.2 rad from the ball,
-                # then the ball, open loop), and its course starts again after the jump
+                # then the ball, open loop), and its course starts again after the jump (tested
+                # where the course will say when and where it passes)
                 idx = np.flatnonzero(ok)
                 jump = _level_shift(t[idx], q[idx], sq[idx])
                 if jump is not None:
@@ -344,8 +366,7 @@ class LoomingEstimator:
                 # not hold (0.5 rad off the blob's, open loop), nor across a jump to another
                 # blob; over min_samples the bearing's curvature is under a pixel
                 idx = np.flatnonzero(ok)[-self.min_samples:]
-                idx = idx[_inliers(t[idx], b[idx], np.full(len(idx), sig / fl))]
-                bline = _wfit(t[idx], b[idx], np.full(len(idx), sig / fl))
+                bline = _robust_line(t[idx].tolist(), b[idx].tolist(), sig / fl)
                 if bline is None:
                     return None
                 direct.append(bline)
@@ -366,11 +387,7 @@ class LoomingEstimator:
         expansion = -vz / z_ref
         exp_se = math.sqrt(lz.var_slope) / z_ref
         tau = tau_se = miss = miss_se = None
-        # a course only when the sizes keep to one: clutter's blobs (a cloud's edge, parallax)
-        # change size by jumps that no constant-velocity approach makes (measured in the closed
-        # loop: real objects 0.3-3.6, the clutter that evaded in object-free flight 7-820)
-        expanding = vz < 0 and -vz > self.min_expansion_sigmas * math.sqrt(lz.var_slope)
-        if sized and lz.chi2 <= self.max_chi2 and expanding:
+        if looms:
             # time to the camera plane (q_z = 0), from the fit's mean time (where its value
             # and slope are uncorrelated), and where the course crosses that plane
             tau_m = -lz.mean / vz
