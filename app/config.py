@@ -98,6 +98,22 @@ class DetectionConfig:
     median_ksize: int = param(3, "median filter aperture, px", ge=1, le=255, odd=True)
     dilate_ksize: int = param(5, "dilation kernel side, px (1 = none)", ge=1, odd=True)
     threshold: int = param(16, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
+    near_sigmas: float = param(
+        5.0,
+        "depth path (only where depth is registered to the image: the infrared imager, or a "
+        "simulated camera): also mark pixels whose inverse depth exceeds that of the valid depth "
+        "beside them on their row by this many of near_noise_per_m, so that an object as bright "
+        "as the ground behind it is seen by its range (0 = off)",
+        ge=0, le=100.0,
+    )
+    near_noise_per_m: float = param(
+        0.0036,
+        "the depth camera's error in inverse depth, 1/m (a stereo pair's is constant: Intel's "
+        "D400 RMS error 0.0036 z^2 m is 0.0036 /m in 1/z)",
+        gt=0, le=1.0,
+    )
+    near_window_px: int = param(80, "the depth path's row window: the background of a pixel is the "
+                                "valid depth within this many px on its row, px", ge=8, le=1000)
     chroma_gain: float = param(
         0.0,
         "also difference the colour's chroma (YCrCb's Cr and Cb, half resolution), weighted by "
@@ -770,6 +786,11 @@ def check_consistency(cfg: Config) -> None:
     if dc.evade_speed_mps > dc.max_speed_mps:
         raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
                           f"max_speed_mps ({dc.max_speed_mps:g})")
+    if d.near_sigmas > 0 and dc.depth_rms_per_m2 > 0 and abs(d.near_noise_per_m - dc.depth_rms_per_m2) > 1e-9:
+        # one stereo error, in two units (sigma_z = c z^2 is sigma_1/z = c): told apart, the
+        # depth path and the 3-D track would disagree about the same camera
+        raise ConfigError(f"perception.detection.near_noise_per_m = {d.near_noise_per_m:g}: must equal "
+                          f"decision.depth_rms_per_m2 ({dc.depth_rms_per_m2:g}), the same stereo error")
     cap = cfg.capture
     if cap.stream == "infrared" and d.chroma_gain > 0:
         raise ConfigError(f"perception.detection.chroma_gain = {d.chroma_gain:g}: the infrared "

@@ -60,6 +60,11 @@ def test_yaml_dump_round_trips() -> None:
         ({"capture": {"stream": "infrared"}, "perception": {"detection": {"chroma_gain": 0.5}}},
          "perception.detection.chroma_gain = 0.5: the infrared imager (capture.stream: infrared) is "
          "monochrome; set it to 0"),
+        ({"perception": {"detection": {"near_noise_per_m": 0.005}}},
+         "perception.detection.near_noise_per_m = 0.005: must equal decision.depth_rms_per_m2 (0.0036), "
+         "the same stereo error"),
+        ({"perception": {"detection": {"near_sigmas": -1}}},
+         "perception.detection.near_sigmas = -1: must be >= 0"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
         ({"perception": {"detection": {"lk_pyramid_levels": 3}}},

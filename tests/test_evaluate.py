@@ -92,6 +92,8 @@ def test_bench_command_reports_both_variants_as_json() -> None:
     ratio = r["baseline_median_ms_per_frame"] / r["median_ms_per_frame"]
     assert r["speedup_vs_full_frame"] == round(ratio, 2)
     assert len(r["repeat_medians_ms"]) == 2
+    # the depth path, timed apart on the clip's depth (it runs only where depth is registered)
+    assert 0 < r["depth_path"]["median_ms"] <= r["depth_path"]["p95_ms"]
     # the variants take turns every 30 frames; the spread of the ratio within the turns
     assert r["turn_frames"] == 30
     p10, p50, p90 = r["turn_speedup_p10_p50_p90"]

@@ -5,10 +5,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
+from app.camera import CameraModel
 from app.config import PerceptionConfig
-from app.perception import photometry
+from app.perception import near, photometry
 from app.perception.confidence import TrackConfidence
 from app.perception.detection import MotionDetector
 from app.perception.frames import Frame, to_grey
@@ -36,8 +38,13 @@ class Perception:
     ``push(frame_t+1)`` returns the result for frame t (None for the first frame).
     """
 
-    def __init__(self, cfg: PerceptionConfig, full_frame_features: bool = False) -> None:
+    def __init__(self, cfg: PerceptionConfig, full_frame_features: bool = False,
+                 camera: CameraModel | None = None) -> None:
         self.cfg = cfg
+        # the depth path (app.perception.near) needs the lens, to know that depth is
+        # registered to the image and in what units
+        self.camera = camera
+        self._near: bool | None = None  # decided on the first frame with depth
         self.detector = MotionDetector(cfg.detection, full_frame=full_frame_features)
         self.recognizer = Recognizer(cfg.recognition)
         self.tracker = Tracker(cfg.tracking)
@@ -67,8 +74,11 @@ class Perception:
             return None
         clusters: list[Cluster] = []
         blobs: Blobs | None = None
-        if det.mask is not None:
-            clusters, blobs = self.recognizer(det.mask)
+        mask = det.mask
+        if mask is not None and current.depth is not None and self.cfg.detection.near_sigmas > 0:
+            mask = self._with_near(mask, current.depth)
+        if mask is not None:
+            clusters, blobs = self.recognizer(mask)
         t2 = time.perf_counter()
         if det.status == "scene_cut":
             tracks: list[TrackReport] = []
@@ -89,5 +99,18 @@ class Perception:
             "tracking_ms": (t3 - t2) * 1e3,
             "total_ms": (t3 - t0) * 1e3,
         }
-        return PerceptionResult(current, det.status, det.mask, blobs, clusters, tracks,
+        return PerceptionResult(current, det.status, mask, blobs, clusters, tracks,
                                 det.homography, timings)
+
+    def _with_near(self, mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """``mask`` with what stands out in depth (app.perception.near), where the depth is
+        registered to the image; ``mask`` itself otherwise."""
+        if self._near is None:
+            self._near = near.registered(self.camera, mask.shape[:2])
+        if not self._near or depth.shape != mask.shape:
+            return mask
+        assert self.camera is not None
+        d = self.cfg.detection
+        marked = near.near_mask(depth, self.camera.depth_scale_m, d.near_sigmas, d.near_noise_per_m,
+                                d.near_window_px, near.MIN_M, near.MAX_M)
+        return cv2.bitwise_or(mask, marked)

@@ -245,7 +245,7 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
     """Stages 1–4 in a dedicated worker thread; publish each new decision; kick the watchdog.
     ``carried``: the frames come from the vehicle's own camera, so the vehicle's velocity and
     attitude are the camera's (:attr:`FrameSource.carried`)."""
-    perception = Perception(cfg.perception)
+    perception = Perception(cfg.perception, camera=decider.camera)
     pool = ThreadPoolExecutor(1, thread_name_prefix="perception")
     loop = asyncio.get_running_loop()
     seen = 0

@@ -55,7 +55,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
     # (a tilting camera stays level too: the script never accelerates)
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
                              paced=False, attitude=(lambda: (0.0, 0.0, 0.0)) if enc.tilt else None)
-    perception = Perception(cfg.perception)
+    perception = Perception(cfg.perception, camera=camera.lens)
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     command_frames: list[int] = []

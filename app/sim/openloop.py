@@ -114,7 +114,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
     wall0 = time.monotonic()
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
                              paced=False)
-    perception = Perception(cfg.perception)
+    perception = Perception(cfg.perception, camera=camera.lens)
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     res = OpenLoopResult(enc, enc.threat, set_name, in_view_s=enc.in_view_s(camera.lens.color))

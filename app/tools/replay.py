@@ -92,11 +92,11 @@ def run_replay(
     """Run perception (and, with depth, the decision) over every frame of ``source``;
     write outputs if ``out_dir`` is given. ``altitude_m`` stands in for the flight side's
     altitude above home (None: unknown, so no downward escape)."""
-    perception = Perception(cfg.perception)
     decider = None
     if source.has_depth:
         decider = DecisionMaker.for_perception(cfg.decision, source.camera or camera_from_config(cfg.camera),
                                                cfg.perception.detection)
+    perception = Perception(cfg.perception, camera=decider.camera if decider is not None else None)
     stats = ReplayStats()
     writer: cv2.VideoWriter | None = None
     video_path = out_dir / "annotated.mp4" if out_dir is not None else None
