@@ -74,4 +74,10 @@ def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: flo
     excess = cv2.subtract(cv2.multiply(inv, count), total)
     stands = cv2.compare(excess, cv2.multiply(count, sigmas * noise_per_m), cv2.CMP_GT)
     small = np.where((count >= k / 3.0) & (valid > 0), stands, np.uint8(0)).astype(np.uint8)
-    return cv2.resize(small, (w, h), interpolation=cv2.INTER_NEAREST)
+    out = np.zeros((h, w), np.uint8)
+    x, y, bw, bh = cv2.boundingRect(small)  # mostly nothing is marked: only that box is scaled up
+    if bw and bh:
+        up = np.repeat(np.repeat(small[y:y + bh, x:x + bw], 2, axis=0), 2, axis=1)
+        x0, y0 = 2 * x, 2 * y
+        out[y0:y0 + 2 * bh, x0:x0 + 2 * bw] = up[:h - y0, :w - x0]
+    return out
