@@ -476,3 +476,23 @@ def test_a_blob_whose_size_keeps_no_course_gives_no_passage_from_its_bearing_rat
     kept = dm._fuse(depth, image(1.5), 1)
     assert kept.miss_sizes is not None and kept.diameter_m is not None
     assert kept.miss_sizes[0] * kept.diameter_m == pytest.approx(0.4, abs=0.01)
+
+
+def test_a_depth_track_starts_from_the_image_only_at_a_closing_speed_an_object_makes() -> None:
+    """A new depth track starts from the image's looming (Z / τ closing), not from rest, when
+    that is a speed an object closes at; a blob filling in reads τ 0.30 s at 15.6 m (52 m/s,
+    object-free flight, seed 43, a tree's blob in the depth path), and that track starts from
+    rest instead, as _fuse sets such a looming aside."""
+    from app.decision.looming import ImageEstimate
+    from app.decision.policy import MAX_CLOSING_MPS, _Track3D
+
+    def image(tau: float) -> ImageEstimate:
+        return ImageEstimate(0.0, 20, (0.5, 0.2), (0.0, 0.0), 0.03, 1 / tau, 0.05, tau, 0.05, None, None)
+
+    z = 15.6
+    believed = _Track3D((7.8, 3.1, z), 0.0, CFG, image(1.5)).state(1, 0.0)
+    assert believed.closing_mps == pytest.approx(z / 1.5)
+    wild = _Track3D((7.8, 3.1, z), 0.0, CFG, image(0.30))
+    assert z / 0.30 > MAX_CLOSING_MPS
+    state = wild.state(1, 0.0)
+    assert state.closing_mps == 0.0 and state.ttc_s is None
