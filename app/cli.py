@@ -56,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="instead: write N synthetic flights over textured ground with truth (MP4 + "
                    "frame,id,x,y,w,h, 10 s each, app.sim.groundset) to --out and score perception "
                    "on them as `midair evaluate` does")
+    d.add_argument("--depth", action="store_true", help="with --ground-flights: through the infrared "
+                   "imager, each flight a recording folder with its depth (color.mp4, depth/, "
+                   "intrinsics.json), so that perception runs with depth")
     d.add_argument("--workers", type=int, default=None, help="with --ground-flights: processes "
                    "that score the flights (default: one per core)")
     with_config(d)
@@ -242,6 +245,8 @@ def _cmd_demo(args: argparse.Namespace, cfg: Config) -> int:
 
     if args.ground_flights is not None:
         return _demo_ground_flights(args, cfg)
+    if args.depth:
+        raise UsageError("--depth: only with --ground-flights (the synthetic flight has its depth already)")
     if args.frames < 10:
         raise UsageError(f"--frames {args.frames}: must be at least 10")
     rec = write_recording(SyntheticScene(frames=args.frames, seed=args.seed), args.out / "recording")
@@ -275,9 +280,11 @@ def _demo_ground_flights(args: argparse.Namespace, cfg: Config) -> int:
     )
 
     plan_flights(args.ground_flights, args.seed)  # bad counts refused before anything is written
-    flights = write_dataset(args.out, args.ground_flights, args.seed,
-                            cfg.capture.color_width, cfg.capture.color_height)
-    print(f"wrote {len(flights)} flights over ground to {args.out} (clips.csv, *.mp4, *.gt.csv)")
+    cap = cfg.capture
+    size = (cap.depth_width, cap.depth_height) if args.depth else (cap.color_width, cap.color_height)
+    flights = write_dataset(args.out, args.ground_flights, args.seed, *size, depth=args.depth)
+    what = "recording folders with depth" if args.depth else "*.mp4"
+    print(f"wrote {len(flights)} flights over ground to {args.out} (clips.csv, {what}, *.gt.csv)")
     scores = evaluate_all(find_clips(args.out), cfg, args.workers)
     sums = totals(scores)
     print(format_tables(scores, sums))

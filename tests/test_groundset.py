@@ -94,3 +94,36 @@ def test_how_steadily_objects_coming_at_the_vehicle_are_reported_needs_the_objec
         approach_shares(tmp_path, Config())
     assert ApproachShare("c", 1, 10, 4, 7, 5).share == pytest.approx(5 / 7)
     assert ApproachShare("c", 1, 10, None, 0, 0).share is None
+
+
+def test_with_depth_each_flight_is_a_recording_through_the_infrared_imager_with_its_depth(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--depth``: recording folders that the replay reads with depth registered to the
+    image (so the depth path runs), one depth frame per frame, and the labels' objects nearer
+    in depth than what lies beside them; asked for without ground flights, refused by name."""
+    from app.perception.near import registered
+    from app.runtime.sources import open_source
+
+    assert main(["demo", "--depth", "--out", str(tmp_path / "none")]) == 2
+    assert "--depth: only with --ground-flights" in capsys.readouterr().err
+    write_dataset(tmp_path, 1, 4, seconds=2.0, depth=True)  # (seed 4: an object low, in front of the ground)
+    (clip,) = find_clips(tmp_path)
+    assert clip.video.is_dir() and clip.name == clip.video.name
+    source = open_source(clip.video)
+    assert source.has_depth and source.camera is not None
+    assert registered(source.camera, (480, 848)) and source.camera.color.fx < 450  # 87° across
+    gt: dict[int, list[list[float]]] = {}
+    with clip.gt.open(newline="") as fh:
+        for row in csv.DictReader(fh):
+            gt.setdefault(int(row["frame"]), []).append([float(row[k]) for k in ("x", "y", "w", "h")])
+    frames = checked = nearer = 0
+    for f in source:
+        frames += 1
+        assert f.depth is not None and f.depth.shape == (480, 848) and f.depth.dtype == np.uint16
+        for x, y, w, h in gt.get(f.index, []):
+            u, v = int(x + w / 2), int(y + h / 2)
+            ring = f.depth[v, max(0, u - int(w) - 20):max(0, u - int(w))]
+            if f.depth[v, u] and ring.any():
+                checked += 1
+                nearer += int(f.depth[v, u] < np.median(ring[ring > 0]))
+    assert frames == 60 and checked > 10 and nearer >= 0.8 * checked

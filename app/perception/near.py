@@ -14,8 +14,9 @@ depth beside it on its own image row by ``near_sigmas`` of the stereo camera's i
 error (constant for a stereo pair: the RMS error 0.0036 z² of Intel's D400 formula is
 0.0036 /m in 1/z). Along a row, not around the pixel: a level camera sees flat ground at one
 range along each row (its inverse depth is linear in the row), so the ground cancels to the
-frame's edges, where a window around the pixel would be cut and biased; a few degrees of
-bank leave well under an error over the window. What has no valid depth beside it (an
+frame's edges, where a window around the pixel would be cut and biased; banked, the ground's
+inverse depth is linear along the row too, and a symmetric window cancels it (25 degrees, an
+evasion's bank, marks nothing: tests/test_near.py). What has no valid depth beside it (an
 object against the sky, where depth is empty) marks nothing: the grey difference sees it
 there. Static structure nearer than what is behind it (a tree in front of far ground) is
 marked too; it is the decision's depth track, not this mask, that tells whether it closes.

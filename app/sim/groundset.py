@@ -13,13 +13,19 @@ image circle is at least ``MIN_LABEL_RADIUS_PX`` is labelled, its box the circle
 the Halmstad clips) beside a ``clips.csv`` index, so ``midair evaluate DIR`` scores them as one
 group, ``groundflights``. Nothing here was used to fit anything.
 
+With ``depth``, each flight is written instead as a recording folder (``color.mp4``, the
+stereo depth as ``depth/000001.png …`` in millimetres, ``intrinsics.json``) through the
+D435i's left infrared imager, whose depth is registered to it (the default stream): the
+same evaluation then runs perception with depth (``app.perception.near``).
+
 What it leaves out: no colour (the renderer draws grey), no attitude (the camera stays level:
-no roll or pitch, yaw only), no motion blur, rolling shutter or depth (evaluation is on colour).
+no roll or pitch, yaw only), no motion blur, rolling shutter or depth holes.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +34,7 @@ import numpy as np
 
 from app.camera import Intrinsics
 from app.errors import UsageError
-from app.sim.world import Sphere, d435i_color, load_world
+from app.sim.world import Monochrome, Renderer, Sphere, d435i_color, d435i_infrared, load_world
 
 # objects drawn smaller are not labelled (4 px across; the README's 2-4 px birds go unseen)
 MIN_LABEL_RADIUS_PX = 2.0
@@ -128,15 +134,24 @@ def flight_vehicle(altitude_m: float, speed_mps: float, yaw_rate_dps: float, t: 
 
 
 def write_flight(flight: GroundFlight, folder: Path, lens: Intrinsics,
-                 world: str = "app.sim.world:shaped") -> tuple[Path, Path, int]:
-    """Render ``flight`` to ``folder/<name>.mp4`` and its truth to ``<name>.gt.csv``; return
-    both paths and the number of labelled rows."""
+                 world: str = "app.sim.world:shaped", depth: bool = False) -> tuple[Path, Path, int]:
+    """Render ``flight`` to ``folder/<name>.mp4`` (with ``depth``: the recording folder
+    ``folder/<name>/``, grey frames through ``lens`` and their depth) and its truth to
+    ``<name>.gt.csv``; return the clip's and the truth's paths and the number of labelled rows."""
     import cv2
 
-    renderer = load_world(world, flight.seed, lens)
+    renderer: Renderer = load_world(world, flight.seed, lens)
     folder.mkdir(parents=True, exist_ok=True)
-    video = folder / f"{flight.name}.mp4"
     gt = folder / f"{flight.name}.gt.csv"
+    clip = video = folder / f"{flight.name}.mp4"
+    depth_dir = None
+    if depth:
+        renderer = Monochrome(renderer)  # the infrared imager sees grey
+        clip = folder / flight.name
+        depth_dir = clip / "depth"
+        depth_dir.mkdir(parents=True, exist_ok=True)
+        video = clip / "color.mp4"
+        (clip / "intrinsics.json").write_text(json.dumps(renderer.camera().to_json(), indent=1))
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*"mp4v"), FPS, (lens.width, lens.height))
     if not writer.isOpened():
         raise OSError(f"{video}: OpenCV cannot write MP4 here")
@@ -151,8 +166,10 @@ def write_flight(flight: GroundFlight, folder: Path, lens: Intrinsics,
                 spheres = [Sphere(j + 1, tuple(float(s + v * t) for s, v in zip(o.start_m, o.velocity_mps,  # type: ignore[arg-type]
                                                                                    strict=True)),
                                   o.diameter_m, o.grey, o.kind) for j, o in enumerate(flight.objects)]
-                colour, _depth, seen = renderer.render(position, yaw, spheres)
-                writer.write(colour)
+                colour, depth_mm, seen = renderer.render(position, yaw, spheres)
+                writer.write(colour if colour.ndim == 3 else cv2.cvtColor(colour, cv2.COLOR_GRAY2BGR))
+                if depth_dir is not None:
+                    cv2.imwrite(str(depth_dir / f"{k + 1:06d}.png"), depth_mm)
                 for oid, (u, v, r, z) in sorted(seen.items()):
                     if r < MIN_LABEL_RADIUS_PX or z <= 0:
                         continue
@@ -165,18 +182,20 @@ def write_flight(flight: GroundFlight, folder: Path, lens: Intrinsics,
                     rows += 1
     finally:
         writer.release()
-    return video, gt, rows
+    return clip, gt, rows
 
 
 def write_dataset(out: Path, n: int, seed: int, width: int = 848, height: int = 480,
-                  world: str = "app.sim.world:shaped", seconds: float = 10.0) -> list[GroundFlight]:
+                  world: str = "app.sim.world:shaped", seconds: float = 10.0,
+                  depth: bool = False) -> list[GroundFlight]:
     """``n`` flights of ``seconds`` into ``out`` with a ``clips.csv`` index (dataset
-    ``groundflights``)."""
-    lens = d435i_color(width, height)
+    ``groundflights``): through the colour lens as MP4, or with ``depth`` through the infrared
+    imager as recording folders with depth."""
+    lens = d435i_infrared(width, height) if depth else d435i_color(width, height)
     flights = plan_flights(n, seed, seconds)
     index = []
     for f in flights:
-        video, gt, rows = write_flight(f, out, lens, world)
+        video, gt, rows = write_flight(f, out, lens, world, depth)
         index.append({"path": video.name, "gt": gt.name, "dataset": "groundflights", "width": width,
                       "height": height, "fps": FPS, "frames": int(round(f.seconds * FPS)),
                       "objects": "+".join(sorted({o.kind for o in f.objects})), "labelled_rows": rows,

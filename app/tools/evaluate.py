@@ -207,7 +207,9 @@ def _clips_from_index(root: Path, index: Path) -> list[Clip]:
             group = f"{dataset}/{row['objects']}" if dataset == "halmstad" else dataset
             cuts = tuple(int(c) for c in (row.get("cuts") or "").split())
             static = dataset == "halmstad" and float(row.get("cam_moving_frac") or 1) < 0.15
-            name = video.stem if video.is_file() else video.parent.name
+            # a video, a recording folder (its own name), or a Halmstad clip's img/ folder
+            name = video.stem if video.is_file() else video.name if (video / "color.mp4").is_file() \
+                else video.parent.name
             clips.append(Clip(name, video, root / row["gt"], group, cuts, static))
     return clips
 
@@ -349,7 +351,8 @@ def approach_shares(folder: Path, cfg: Config, workers: int | None = None) -> li
         for row in csv.DictReader(fh):
             if row["approaching"] == "1":
                 ids.setdefault(row["clip"], []).append(int(row["id"]))
-    jobs = [(folder / f"{clip}.mp4", folder / f"{clip}.gt.csv", oids, cfg)
+    jobs = [(folder / clip if (folder / clip).is_dir() else folder / f"{clip}.mp4", folder / f"{clip}.gt.csv",
+             oids, cfg)
             for clip, oids in sorted(ids.items())]
     workers = workers or os.cpu_count() or 1
     if workers <= 1 or len(jobs) <= 1:
