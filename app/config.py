@@ -100,8 +100,8 @@ class DetectionConfig:
     threshold: int = param(16, "binarisation threshold on the filtered difference, grey levels", ge=1, le=254)
     near_sigmas: float = param(
         5.0,
-        "depth path (only where depth is registered to the image: the infrared imager, or a "
-        "simulated camera): also mark pixels whose inverse depth exceeds that of the valid depth "
+        "depth path (only where depth is in the image's own pixels: the infrared imager, or a "
+        "recording so registered): also mark pixels whose inverse depth exceeds that of the valid depth "
         "beside them on their row by this many of near_noise_per_m, so that an object as bright "
         "as the ground behind it is seen by its range (0 = off)",
         ge=0, le=100.0,

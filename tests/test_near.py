@@ -128,3 +128,31 @@ def test_an_odd_sized_frame_keeps_its_size_and_marks_in_place() -> None:
     assert marked.shape == (479, 847)
     ys, xs = np.nonzero(marked)
     assert len(xs) > 50 and abs(xs.mean() - 840.0) < 3 and abs(ys.mean() - 470.0) < 3
+
+
+def test_the_colour_stream_has_no_depth_path_even_where_the_simulation_draws_depth_in_it(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """A D435i computes depth in its left infrared imager's frame: the depth path is for that
+    stream. The simulation draws depth in the colour lens too, so it is told by the stream,
+    and a perception given no registered depth says once that the path is off."""
+    from app.perception.frames import Frame
+    from app.perception.near import depth_lens
+    from app.perception.pipeline import Perception
+
+    cam = CameraModel(LENS, LENS)
+    assert depth_lens(cam, "infrared") is cam and depth_lens(cam, "color") is None
+    cfg = Config()
+    p = Perception(cfg.perception, camera=depth_lens(cam, "color"))
+    rng = np.random.default_rng(0)
+    grey = rng.integers(60, 140, (H, W), dtype=np.uint8)
+    depth = disc(ground_depth(6.0), 500.0, 310.0, 10.0, 10.0)
+    with caplog.at_level("INFO", logger="app.perception.pipeline"):
+        for i in range(3):
+            result = p.push(Frame(i + 1, i / 30.0, np.dstack([grey] * 3), depth))
+    assert result is not None and result.mask is not None
+    assert not result.mask[300:320, 490:510].any()  # the disc stands in depth only: unmarked
+    assert sum("depth path off" in r.getMessage() for r in caplog.records) == 1
+    with_depth = Perception(cfg.perception, camera=depth_lens(cam, "infrared"))
+    for i in range(3):
+        result = with_depth.push(Frame(i + 1, i / 30.0, np.dstack([grey] * 3), depth))
+    assert result is not None and result.mask is not None and (result.mask[302:318, 492:508] > 0).mean() > 0.7

@@ -8,8 +8,8 @@ campaign at 1af4426 first tracked 21 of its 81 birds under 1.0 s before the clos
 sees such a bird plainly: 19 m in front of ground 35 m away is 6.6 standard errors of the
 D435i's inverse depth (a frame of docs/campaign-bearings, encounter 4100219).
 
-So, where the depth is registered to the image (the infrared imager's own lens, or a
-simulated camera), a pixel is marked when its inverse depth exceeds that of the valid
+So, where the depth is registered to the image (the infrared imager's own lens; in
+simulation too only with that stream, see :func:`depth_lens`), a pixel is marked when its inverse depth exceeds that of the valid
 depth beside it on its own image row by ``near_sigmas`` of the stereo camera's inverse-depth
 error (constant for a stereo pair: the RMS error 0.0036 z² of Intel's D400 formula is
 0.0036 /m in 1/z). Along a row, not around the pixel: a level camera sees flat ground at one
@@ -35,6 +35,15 @@ MIN_M = 0.2  # the D435i's nearest depth at 848 x 480 is ~0.2-0.3 m (Intel's dat
 MAX_M = 65.535  # what a uint16 millimetre frame holds
 
 
+def depth_lens(camera: CameraModel, stream: str) -> CameraModel | None:
+    """The calibration the depth path may use with ``capture.stream`` = ``stream``: the
+    camera's for the infrared imager, None for the colour camera. A D435i computes depth in
+    its left infrared imager's frame, so only that stream has depth in its own pixels; the
+    simulation draws depth in whichever lens it renders, and would otherwise give the colour
+    stream a depth path the hardware cannot have."""
+    return camera if stream == "infrared" else None
+
+
 def registered(camera: CameraModel | None, shape: tuple[int, int]) -> bool:
     """Is ``camera``'s depth in the image's own pixels (same lens, no offset), for frames
     of ``shape`` (rows, cols)? Only then does a depth pixel sit under the image pixel of the
@@ -42,10 +51,12 @@ def registered(camera: CameraModel | None, shape: tuple[int, int]) -> bool:
     if camera is None:
         return False
     c, d = camera.color, camera.depth
+    # (tolerances: a hundredth of a pixel, a tenth of a millimetre, as the SDK's floats give
+    # the left infrared imager and the depth computed in its frame)
     return ((c.width, c.height) == (d.width, d.height) == (shape[1], shape[0])
-            and abs(c.fx - d.fx) < 1e-6 and abs(c.fy - d.fy) < 1e-6
-            and abs(c.ppx - d.ppx) < 1e-6 and abs(c.ppy - d.ppy) < 1e-6
-            and np.allclose(camera.rotation, np.eye(3)) and np.allclose(camera.translation_m, 0.0))
+            and max(abs(c.fx - d.fx), abs(c.fy - d.fy), abs(c.ppx - d.ppx), abs(c.ppy - d.ppy)) < 0.01
+            and np.allclose(camera.rotation, np.eye(3), atol=1e-4)
+            and np.allclose(camera.translation_m, 0.0, atol=1e-4))
 
 
 def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: float,

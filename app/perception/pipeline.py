@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field
 
@@ -16,6 +17,8 @@ from app.perception.detection import MotionDetector
 from app.perception.frames import Frame, to_grey
 from app.perception.recognition import Blobs, Cluster, Recognizer
 from app.perception.tracking import Tracker, TrackReport
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -107,6 +110,9 @@ class Perception:
         registered to the image; ``mask`` itself otherwise."""
         if self._near is None:
             self._near = near.registered(self.camera, mask.shape[:2])
+            if not self._near:
+                log.info("depth path off: the depth is not in the image's own pixels (another lens, "
+                         "another size, or no calibration); objects are seen by their grey alone")
         if not self._near or depth.shape != mask.shape:
             return mask
         assert self.camera is not None

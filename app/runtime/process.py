@@ -34,6 +34,7 @@ from app.flight.engagement import Decision, Engagement, Output, VehicleState
 from app.flight.loop import Controller, FlightLink, LoopStats, control_loop
 from app.flight.testflight import TestFlight
 from app.perception.frames import Frame, FrameSource
+from app.perception.near import depth_lens
 from app.perception.pipeline import Perception
 from app.runtime.notify import Notifier
 from app.runtime.record import FlightRecord
@@ -245,7 +246,7 @@ async def perceive(frames: LatestSlot[Frame], decisions: LatestSlot[Decision], w
     """Stages 1–4 in a dedicated worker thread; publish each new decision; kick the watchdog.
     ``carried``: the frames come from the vehicle's own camera, so the vehicle's velocity and
     attitude are the camera's (:attr:`FrameSource.carried`)."""
-    perception = Perception(cfg.perception, camera=decider.camera)
+    perception = Perception(cfg.perception, camera=depth_lens(decider.camera, cfg.capture.stream))
     pool = ThreadPoolExecutor(1, thread_name_prefix="perception")
     loop = asyncio.get_running_loop()
     seen = 0

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from app.config import Config
 from app.decision.ego import EgoMotion, camera_velocity
 from app.decision.policy import NONE, DecisionMaker
+from app.perception.near import depth_lens
 from app.perception.pipeline import Perception
 from app.sim.simulate import Encounter, EncounterResult, SimulatedCamera, _episodes, run_encounter, world_for
 
@@ -55,7 +56,7 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
     # (a tilting camera stays level too: the script never accelerates)
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
                              paced=False, attitude=(lambda: (0.0, 0.0, 0.0)) if enc.tilt else None)
-    perception = Perception(cfg.perception, camera=camera.lens)
+    perception = Perception(cfg.perception, camera=depth_lens(camera.lens, cfg.capture.stream))
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     command_frames: list[int] = []

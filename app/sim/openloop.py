@@ -38,6 +38,7 @@ import numpy as np
 from app.config import Config
 from app.decision.policy import EVADE, NONE, DecisionMaker
 from app.decision.response import ResponseModel
+from app.perception.near import depth_lens
 from app.perception.pipeline import Perception
 from app.perception.tracking import TrackReport
 from app.sim.fast import _Script, script_ego
@@ -114,7 +115,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
     wall0 = time.monotonic()
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),
                              paced=False)
-    perception = Perception(cfg.perception, camera=camera.lens)
+    perception = Perception(cfg.perception, camera=depth_lens(camera.lens, cfg.capture.stream))
     decider = DecisionMaker.for_perception(cfg.decision, camera.lens, cfg.perception.detection)
     ego = script_ego(enc)  # the autopilot's velocity: the script's, flown exactly
     res = OpenLoopResult(enc, enc.threat, set_name, in_view_s=enc.in_view_s(camera.lens.color))
