@@ -8,18 +8,18 @@ campaign at 1af4426 first tracked 21 of its 81 birds under 1.0 s before the clos
 sees such a bird plainly: 19 m in front of ground 35 m away is 6.6 standard errors of the
 D435i's inverse depth (a frame of docs/campaign-bearings, encounter 4100219).
 
-So, where the depth is registered to the image (the infrared imager's own lens; in
-simulation too only with that stream, see :func:`depth_lens`), a pixel is marked when its inverse depth exceeds that of the valid
-depth beside it on its own image row by ``near_sigmas`` of the stereo camera's inverse-depth
-error (constant for a stereo pair: the RMS error 0.0036 z² of Intel's D400 formula is
-0.0036 /m in 1/z). Along a row, not around the pixel: a level camera sees flat ground at one
-range along each row (its inverse depth is linear in the row), so the ground cancels to the
-frame's edges, where a window around the pixel would be cut and biased; banked, the ground's
-inverse depth is linear along the row too, and a symmetric window cancels it (25 degrees, an
-evasion's bank, marks nothing: tests/test_near.py). What has no valid depth beside it (an
-object against the sky, where depth is empty) marks nothing: the grey difference sees it
-there. Static structure nearer than what is behind it (a tree in front of far ground) is
-marked too; it is the decision's depth track, not this mask, that tells whether it closes.
+So, where the depth is registered to the image (the infrared imager's own lens; in simulation
+too only with that stream, see :func:`depth_lens`), a pixel is marked when its inverse depth
+exceeds that of the valid depth beside it on its own image row by ``near_sigmas`` of the stereo
+camera's inverse-depth error (constant for a stereo pair: the RMS error 0.0036 z² of Intel's
+D400 formula is 0.0036 /m in 1/z). Along a row, not around the pixel: a level camera sees flat
+ground at one range along each row (its inverse depth is linear in the row), so the ground
+cancels to the frame's edges, where a window around the pixel would be cut and biased; banked,
+the ground's inverse depth is linear along the row too, and a symmetric window cancels it (25
+degrees, an evasion's bank, marks nothing: tests/test_near.py). What has no valid depth beside
+it (an object against the sky, where depth is empty) marks nothing: the grey difference sees it
+there. Static structure nearer than what is behind it (a tree in front of far ground) is marked
+too; it is the decision's depth track, not this mask, that tells whether it closes.
 """
 
 from __future__ import annotations
