@@ -463,6 +463,13 @@ class DecisionConfig:
     trigger_margin_s: float = param(
         0.3, "response trigger: start this much earlier than the vehicle's need, s", ge=0
     )
+    own_wander_mps: float = param(
+        0.13, "response trigger: the vehicle's own unplanned motion (a hover's wander in wind "
+        "and GPS noise): where it will be at the passage is uncertain by this times the time "
+        "left, added to the passage's uncertainty when judging whether it must move (PX4 SITL "
+        "SIH hovering: 0.05 / 0.10 / 0.13 / 0.17 m at 0.5 / 0.8 / 1.0 / 1.2 s, docs/sitl.md), "
+        "m/s; 0 = a vehicle that holds still", ge=0,
+    )
     object_diameter_min_m: float = param(
         0.15, "smallest plausible object (a small bird, a ball), m: turns the image's miss in "
         "object sizes into metres until depth gives the range", gt=0,

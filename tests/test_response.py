@@ -496,3 +496,33 @@ def test_a_depth_track_starts_from_the_image_only_at_a_closing_speed_an_object_m
     assert z / 0.30 > MAX_CLOSING_MPS
     state = wild.state(1, 0.0)
     assert state.closing_mps == 0.0 and state.ttc_s is None
+
+
+def test_the_vehicles_own_wander_widens_the_passage_it_must_clear() -> None:
+    """A hover wanders (PX4 SITL: 0.13 m in 1 s): a passage predicted 0.70 m off a 0.3 m
+    object, to 0.01 m, clears the 0.60 m needed only if the vehicle holds still. With
+    ``own_wander_mps`` it is a threat while there is time for the wander to close it (1 s
+    out), not once there is none (0.2 s); and one predicted 0.45 m off (the SITL run's) is
+    started earlier than the still vehicle's trigger would."""
+    from dataclasses import replace
+
+    def fused(tau: float, miss_m: float) -> ObjectState:
+        o = image_obj(tau, (miss_m / 0.3, 0.0), miss_std=0.01 / 0.3)
+        return replace(o, source="fused", fresh=True, measured_s=0.0, diameter_m=0.3)
+
+    still = DecisionMaker(replace(CFG, own_wander_mps=0.0), CAM)
+    wandering = DecisionMaker(replace(CFG, own_wander_mps=0.13), CAM)
+    assert CFG.own_wander_mps == 0.13  # the default
+    assert still.assess(fused(1.0, 0.70)) is None
+    assert wandering.assess(fused(1.0, 0.70)) is not None
+    assert wandering.assess(fused(0.2, 0.70)) is None
+
+    def first_urgent(dm: DecisionMaker) -> float:
+        """The largest time left (10 ms steps) at which the 0.45 m passage is urgent."""
+        for tau in np.arange(2.0, 0.0, -0.01):
+            a = dm.assess(fused(float(tau), 0.45))
+            if a is not None and a[0] <= a[1] + CFG.trigger_margin_s:
+                return float(tau)
+        return 0.0
+
+    assert first_urgent(wandering) >= first_urgent(still) + 0.08 > 0.08
