@@ -137,8 +137,9 @@ def test_the_colour_stream_has_no_depth_path_even_where_the_simulation_draws_dep
     and a perception given no registered depth says once that the path is off."""
     from app.perception.frames import Frame
     from app.perception.near import depth_lens
-    from app.perception.pipeline import Perception
+    from app.perception.pipeline import Perception, _say_near_off
 
+    _say_near_off.cache_clear()  # said once a process: another test may have said it
     cam = CameraModel(LENS, LENS)
     assert depth_lens(cam, "infrared") is cam and depth_lens(cam, "color") is None
     cfg = Config()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import dataclass, field
@@ -19,6 +20,14 @@ from app.perception.recognition import Blobs, Cluster, Recognizer
 from app.perception.tracking import Tracker, TrackReport
 
 log = logging.getLogger(__name__)
+
+
+@functools.cache
+def _say_near_off() -> None:
+    """Once a process, not once a perception: ``midair bench`` and ``midair evaluate`` build one
+    for every run or clip, and said a dozen times the line buries their output."""
+    log.info("depth path off: the depth is not in the image's own pixels (another lens, "
+             "another size, or no calibration); objects are seen by their grey alone")
 
 
 @dataclass
@@ -111,8 +120,7 @@ class Perception:
         if self._near is None:
             self._near = near.registered(self.camera, mask.shape[:2])
             if not self._near:
-                log.info("depth path off: the depth is not in the image's own pixels (another lens, "
-                         "another size, or no calibration); objects are seen by their grey alone")
+                _say_near_off()
         if not self._near or depth.shape != mask.shape:
             return mask
         assert self.camera is not None
