@@ -2,7 +2,7 @@
 encounters against the stand-in vehicle: does avoidance hold with PX4's own controllers?
 
     .venv/bin/python tests/sitl_campaign.py ~/px4/build/px4_sitl_lean --campaign 30 --seed 41 \\
-        --out out/sitl-campaign [--crossing 10]
+        --out out/sitl-campaign [--crossing 10] [--resume]
 
 For every encounter: ``../shared/px4-sitl/start.sh`` starts PX4 (SIH quadrotor, fresh
 parameters), the pilot's link (the ``sitl`` tests' ground station, 14550) takes off to a
@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sitl tests' grou
 from test_sitl import HOVER_ALT_M, GroundStation, bring_to_hover  # noqa: E402
 
 from app.config import Config  # noqa: E402
+from app.errors import UsageError  # noqa: E402
 from app.sim.campaign import crossing_set, sample_encounters, write_report  # noqa: E402
 from app.sim.results import ResultLog, compare  # noqa: E402
 from app.sim.simulate import Encounter, EncounterResult, run_encounter  # noqa: E402
@@ -93,6 +94,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crossing", type=int, default=0, help="encounters of the crossing set")
     ap.add_argument("--seed", type=int, default=41)
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--resume", action="store_true", help="continue the campaign already in --out "
+                    "(same arguments), flying only the encounters it lacks")
     ap.add_argument("--start", type=Path, default=START, help=f"PX4 SITL's start script (default {START})")
     args = ap.parse_args(argv)
     if not (args.build / "bin" / "px4").exists():
@@ -104,8 +107,14 @@ def main(argv: list[str] | None = None) -> int:
     encs = [replace(e, own_speed_mps=0.0, altitude_m=HOVER_ALT_M, tilt=False)
             for e in [*sample_encounters(args.campaign, args.seed), *crossing_set(args.crossing, args.seed)]]
     plan = {"seed": args.seed, "campaign": args.campaign, "crossing": args.crossing, "from": "hover"}
-    logs = {name: ResultLog(args.out / name, plan, resume=(args.out / name / "encounters.csv").exists())
-            for name in ("sitl", "standin")}
+    names = ("sitl", "standin")
+    if not args.resume and any((args.out / n / "encounters.csv").exists() for n in names):
+        ap.error(f"{args.out} already holds this tool's results: --resume continues them, or choose "
+                 "another --out")
+    try:
+        logs = {name: ResultLog(args.out / name, plan, resume=args.resume) for name in names}
+    except UsageError as exc:
+        ap.error(str(exc))
     t0 = time.monotonic()
     results: dict[str, list[EncounterResult]] = {"sitl": [], "standin": []}
     for i, enc in enumerate(encs, 1):
