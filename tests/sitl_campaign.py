@@ -2,15 +2,17 @@
 encounters against the stand-in vehicle: does avoidance hold with PX4's own controllers?
 
     .venv/bin/python tests/sitl_campaign.py ~/px4/build/px4_sitl_lean --campaign 30 --seed 41 \\
-        --out out/sitl-campaign [--crossing 10] [--resume]
+        --out out/sitl-campaign [--crossing 10] [--from leg] [--resume]
 
 For every encounter: ``../shared/px4-sitl/start.sh`` starts PX4 (SIH quadrotor, fresh
 parameters), the pilot's link (the ``sitl`` tests' ground station, 14550) takes off to a
 hover in Hold, and :func:`app.sim.simulate.run_encounter` flies the encounter with the camera
 rendered from PX4's telemetry and midair on PX4's offboard port (14540), as
 ``midair simulate --connection`` does; then PX4 is stopped. The encounters are the
-campaign's (``sample_encounters`` / ``crossing_set`` of the seed), flown from a hover at the
-ground station's take-off altitude (a Mission leg needs a mission: not here). Results go to
+campaign's (``sample_encounters`` / ``crossing_set`` of the seed) at the ground station's
+take-off altitude, flown from a hover (``--from hover``), or (``--from leg``) at each
+encounter's own speed: the ground station flies a Mission leg north at that speed (0: a
+hover), and the encounter starts once PX4 flies it steadily. Results go to
 ``OUT/sitl`` and ``OUT/standin`` (``encounters.csv``, ``report.md``) as each finishes, and the
 two are compared pair by pair (``midair simulate compare``). A development tool: it needs a
 PX4 build (docs/sitl.md), which CI does not have.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import os
 import signal
 import subprocess
@@ -30,7 +33,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sitl tests' ground station
 
-from test_sitl import HOVER_ALT_M, GroundStation, bring_to_hover  # noqa: E402
+from test_sitl import HOVER_ALT_M, GroundStation, bring_to_hover, until  # noqa: E402
 
 from app.config import Config  # noqa: E402
 from app.errors import UsageError  # noqa: E402
@@ -66,22 +69,56 @@ def stop_px4(pid: int) -> None:
             time.sleep(0.1)
 
 
-async def hover() -> None:
-    """Take off to a hover in Hold. (SIH's hover wanders, as a real one does in wind on GPS:
-    ±0.5 m and up to 0.7 m/s over a minute measured here, so an encounter laid as a collision
-    course from where the vehicle is at its first frame may pass off by as much.)"""
+LEG_M = 400.0  # the Mission leg's length: a minute and more at 4 m/s, far past any encounter
+STEADY_MPS = 0.25  # the leg is flown steadily once every velocity of the last second is
+STEADY_S = 1.0  # within this of the leg's, and the heading within STEADY_YAW_DEG of north
+STEADY_YAW_DEG = 5.0
+
+
+async def hover(cruise_mps: float = 0.0) -> None:
+    """Take off to a hover in Hold; with ``cruise_mps`` > 0, then fly a Mission leg north at
+    that speed (one waypoint LEG_M north at the take-off altitude) and return once PX4 flies
+    it steadily, as the stand-in's Mission does from the start. (SIH's hover wanders, as a
+    real one does in wind on GPS: ±0.5 m and up to 0.7 m/s over a minute measured here, so an
+    encounter laid as a collision course from where the vehicle is at its first frame may
+    pass off by as much.)"""
     gcs = GroundStation(GCS_URL)
     try:
         await gcs.connect()
         await bring_to_hover(gcs)
+        if cruise_mps > 0:
+            await fly_north(gcs, cruise_mps)
     finally:
         await gcs.close()
+
+
+async def fly_north(gcs: GroundStation, cruise_mps: float) -> None:
+    from mavsdk.asyncio.plugins.mission import MissionItem, MissionPlan
+
+    assert gcs.v.lat_lon is not None
+    lat0, lon0 = gcs.v.lat_lon
+    # MAVSDK sends an item's speed as a change of speed after it (PX4 flew a lone item at its
+    # MPC_XY_CRUISE, 5 m/s): the first item, where the vehicle hovers, sets the leg's speed
+    items = [MissionItem(lat, lon0, HOVER_ALT_M, cruise_mps, True)
+             for lat in (lat0, lat0 + LEG_M / 111_320.0)]
+    await gcs.mission.upload_mission(MissionPlan(items))
+    await gcs.start_mission()
+
+    def steady() -> bool:
+        now = time.monotonic()
+        last = [s for s in gcs.v.samples if s.t >= now - STEADY_S]
+        return (len(last) >= 5 and gcs.v.samples[0].t < now - STEADY_S
+                and all(abs(s.vel_ned[0] - cruise_mps) < STEADY_MPS and abs(s.vel_ned[1]) < STEADY_MPS
+                        and abs(s.vel_ned[2]) < STEADY_MPS
+                        and abs(math.degrees(s.yaw_rad)) < STEADY_YAW_DEG for s in last))
+
+    await until(steady, 40.0, f"a Mission leg flown steadily north at {cruise_mps:g} m/s")
 
 
 def fly_on_sitl(cfg: Config, enc: Encounter, build: Path, out: Path, start: Path) -> EncounterResult:
     pid = start_px4(build, out / f"px4-{enc.seed}.log", start)
     try:
-        asyncio.run(hover())
+        asyncio.run(hover(enc.own_speed_mps))
         return run_encounter(cfg, enc, connection=OFFBOARD_URL)
     finally:
         stop_px4(pid)
@@ -96,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--resume", action="store_true", help="continue the campaign already in --out "
                     "(same arguments), flying only the encounters it lacks")
+    ap.add_argument("--from", dest="origin", choices=("hover", "leg"), default="hover",
+                    help="every encounter from a hover, or at its own speed on a Mission leg north")
     ap.add_argument("--start", type=Path, default=START, help=f"PX4 SITL's start script (default {START})")
     args = ap.parse_args(argv)
     if not (args.build / "bin" / "px4").exists():
@@ -103,10 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     if not args.start.exists():
         ap.error(f"{args.start}: missing (the shared PX4 SITL scripts)")
     cfg = Config()
-    # from a hover at the ground station's take-off altitude, camera held level
-    encs = [replace(e, own_speed_mps=0.0, altitude_m=HOVER_ALT_M, tilt=False)
+    # at the ground station's take-off altitude, camera held level; from a hover, or at
+    # the encounter's own speed on a Mission leg
+    encs = [replace(e, own_speed_mps=e.own_speed_mps if args.origin == "leg" else 0.0,
+                    altitude_m=HOVER_ALT_M, tilt=False)
             for e in [*sample_encounters(args.campaign, args.seed), *crossing_set(args.crossing, args.seed)]]
-    plan = {"seed": args.seed, "campaign": args.campaign, "crossing": args.crossing, "from": "hover"}
+    plan = {"seed": args.seed, "campaign": args.campaign, "crossing": args.crossing, "from": args.origin}
     names = ("sitl", "standin")
     if not args.resume and any((args.out / n / "encounters.csv").exists() for n in names):
         ap.error(f"{args.out} already holds this tool's results: --resume continues them, or choose "
@@ -132,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     n_main = args.campaign
     for name, rows in results.items():
         logs[name].close()
-        write_report(args.out / name, rows[:n_main], [], cfg, wall, title=f"Campaign from a hover ({name})",
+        whence = "a hover" if args.origin == "hover" else "a Mission leg"
+        write_report(args.out / name, rows[:n_main], [], cfg, wall, title=f"Campaign from {whence} ({name})",
                      crossing=rows[n_main:])
     print(compare(results["sitl"], results["standin"]).text("PX4 SITL", "stand-in"))
     return 0
