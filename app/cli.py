@@ -166,6 +166,9 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--vel-gain", type=float, default=1.8, metavar="P_ACC", help="the stand-in "
                    "vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8; hardware/px4-companion.params "
                    "recommends 2.5): how quickly it builds lateral speed")
+    m.add_argument("--wander", type=float, default=0.0, metavar="K", help="the stand-in's hover "
+                   "drifts as PX4 SITL's does (±0.5 m, up to 0.7 m/s: docs/sitl.md), times K (0-5; "
+                   "default 0: still), and so does its flight on a leg")
     m.add_argument("--tilt", action="store_true", help="the camera is fixed to the body and banks "
                    "and pitches as the vehicle accelerates (default: held level); the decision runs "
                    "with decision.camera_mount: body, derotating by the autopilot's attitude")
@@ -530,6 +533,13 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     if not XY_VEL_P_ACC_RANGE[0] <= args.vel_gain <= XY_VEL_P_ACC_RANGE[1]:
         raise UsageError(f"--vel-gain {args.vel_gain:g}: PX4's MPC_XY_VEL_P_ACC takes "
                          f"{XY_VEL_P_ACC_RANGE[0]:g}-{XY_VEL_P_ACC_RANGE[1]:g}")
+    if not 0.0 <= args.wander <= 5.0:
+        raise UsageError(f"--wander {args.wander:g}: a multiple of PX4 SITL's hover drift, 0-5")
+    if args.wander > 0 and (args.connection or args.open_loop
+                            or (args.object_free and not args.realtime_object_free)):
+        raise UsageError("--wander drifts the stand-in vehicle: not with --connection (the vehicle "
+                         "there drifts as it does), --open-loop or the fast object-free run (their "
+                         "flights follow the script exactly; --realtime-object-free flies them)")
     if args.world:
         from app.sim.simulate import world_for
 
@@ -542,7 +552,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
     if not sets_given and not args.resume:
         enc = Encounter(seed=args.seed, object_speed_mps=args.speed, approach_deg=args.angle,
                         miss_m=args.miss, size_m=args.size, own_speed_mps=args.own_speed, fps=args.fps,
-                        world=args.world, xy_vel_p_acc=args.vel_gain, tilt=args.tilt)
+                        world=args.world, xy_vel_p_acc=args.vel_gain, tilt=args.tilt,
+                        wander=args.wander)
         if not 0 < args.speed <= 40 or not -60 <= args.angle <= 60 or args.miss < 0 or args.size <= 0:
             raise UsageError("simulate: --speed in (0, 40] m/s, --angle in [-60, 60] deg, "
                              "--miss >= 0, --size > 0")
@@ -557,7 +568,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
 
     out = args.resume or args.out
     workers = args.workers or default_workers()
-    flown = {"fps": args.fps, "world": args.world, "xy_vel_p_acc": args.vel_gain, "tilt": args.tilt}
+    flown = {"fps": args.fps, "world": args.world, "xy_vel_p_acc": args.vel_gain, "tilt": args.tilt,
+             "wander": args.wander}
     encounters = [replace(e, **flown) for e in sample_encounters(args.campaign or 0, args.seed)]
     wide = [replace(e, **flown) for e in wide_passes(args.wide_passes, args.seed)]
     cross = [replace(e, **flown) for e in crossing_set(args.crossing, args.seed)]
@@ -577,6 +589,8 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         plan["vel_gain"] = args.vel_gain
     if args.tilt:
         plan["tilt"] = True
+    if args.wander:
+        plan["wander"] = args.wander
     log = ResultLog(out, plan, resume=args.resume is not None)
     everything = [*encounters, *wide, *cross, *free]
     bar = _CampaignBar(len(everything), len(log.done),

@@ -114,6 +114,13 @@ def test_compare_on_the_command_line(tmp_path: Path, capsys: pytest.CaptureFixtu
     # the open loop's scripts never accelerate: a tilting camera is refused, not ignored
     assert main(["simulate", "--open-loop", "--campaign", "1", "--tilt", "--out", str(tmp_path / "t")]) == 2
     assert "--tilt flies the closed loop only" in capsys.readouterr().err
+    # a wandering stand-in cannot be flown where the flights follow the script exactly
+    for args, why in ((["--wander", "6", "--campaign", "1"], "--wander 6: a multiple"),
+                      (["--wander", "1", "--open-loop", "--campaign", "1"], "not with --connection"),
+                      (["--wander", "1", "--object-free", "1"], "--realtime-object-free flies them")):
+        assert main(["simulate", *args, "--out", str(tmp_path / "w")]) == 2
+        assert why in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
     assert main(["simulate", "compare", str(tmp_path / "a"), str(tmp_path / "none")]) == 2
 
 
@@ -140,6 +147,8 @@ def test_object_free_flight_faster_than_real_time_runs_the_production_path() -> 
     assert speed_factor([a]) > 0
     with pytest.raises(ValueError, match="only object-free"):
         fly_fast(cfg, Encounter(seed=5))
+    with pytest.raises(ValueError, match="wandering hover"):
+        fly_fast(cfg, replace(enc, wander=1.0))
 
 
 def test_a_command_in_the_fast_run_is_flown_again_in_real_time(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -526,3 +526,54 @@ def test_the_vehicles_own_wander_widens_the_passage_it_must_clear() -> None:
         return 0.0
 
     assert first_urgent(wandering) >= first_urgent(still) + 0.08 > 0.08
+
+
+def _hover_track(wander: float, seconds: float, seed: int = 7, dt: float = 0.02) -> np.ndarray:
+    """The stand-in's position, hovering in Hold, every ``dt`` s (stepped, not threaded)."""
+    sim = SimPx4(free_udp_port(), state=SimState(mode="hold"), wander=wander, wander_seed=seed)
+    try:
+        out = []
+        for k in range(int(seconds / dt)):
+            sim._step(dt, k * dt)
+            out.append(sim.pose()[0])
+    finally:
+        sim.stop()
+    return np.array(out)
+
+
+def test_the_stand_ins_wandering_hover_strays_as_px4_sitls_did() -> None:
+    """With ``wander`` 1, the stand-in's hover drifts as SIH's did on PX4 SITL (docs/sitl.md):
+    its position strays from the straight line through its velocity (over the last 0.2 s) in
+    the camera's plane by 0.053 m RMS in 0.5 s and 0.131 m in 1.0 s; it stays within about
+    ±0.5 m across at under 1 m/s. Without, it hovers still."""
+    dt = 0.02
+    pos = _hover_track(1.0, 1200.0, dt=dt)
+    plane = pos[:, 1:]  # east, down: the plane of a camera facing north
+    back = int(0.2 / dt)
+    for ahead_s, sitl in ((0.5, 0.053), (1.0, 0.131)):
+        m = int(round(ahead_s / dt))
+        i = np.arange(back, len(plane) - m, 5)
+        line = plane[i] + (plane[i] - plane[i - back]) / 0.2 * ahead_s
+        rms = float(np.sqrt(np.mean(np.sum((plane[i + m] - line) ** 2, axis=1))))
+        assert 0.75 * sitl < rms < 1.25 * sitl, (ahead_s, rms)
+    across = pos[:, 1] - pos[:, 1].mean()
+    assert 0.15 < float(across.std()) < 0.35
+    speed = np.linalg.norm(np.diff(pos, axis=0), axis=1) / dt
+    assert float(speed.max()) < 1.0
+    still = _hover_track(0.0, 5.0)
+    assert np.ptp(still, axis=0).max() == 0.0
+
+
+def test_the_wander_is_the_seeds_and_bounded() -> None:
+    a, b = _hover_track(1.0, 2.0, seed=3), _hover_track(1.0, 2.0, seed=3)
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, _hover_track(1.0, 2.0, seed=4))
+    for bad in (-0.5, 6.0):
+        with pytest.raises(ValueError, match="wander"):
+            SimPx4(free_udp_port(), wander=bad)
+    landed = SimPx4(free_udp_port(), state=SimState(armed=False, in_air=False), wander=1.0, wander_seed=1)
+    try:
+        landed._step(0.02, 0.02)
+        assert landed.pose()[1] == (0.0, 0.0, 0.0)  # on the ground nothing drifts
+    finally:
+        landed.stop()

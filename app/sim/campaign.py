@@ -173,6 +173,11 @@ def envelope(rows: list[EncounterResult], threshold: float = 0.9) -> float | Non
     return None
 
 
+def _wander(rows: list[EncounterResult]) -> str:
+    k = rows[0].encounter.wander if rows else 0.0
+    return f", its hover drifting as PX4 SITL's × {k:g}" if k else ""
+
+
 def _lens(cfg: Config) -> str:
     """What the campaign's perception saw: the stream, its size and width across."""
     lens = lens_for(cfg)
@@ -203,8 +208,8 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
              f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
              f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, camera "
              f"{_lens(cfg)} at {rows[0].encounter.fps if rows else 30:g} fps, stand-in vehicle's "
-             f"MPC_XY_VEL_P_ACC {rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}, "
-             f"wall time {wall_s:.0f} s.", "",
+             f"MPC_XY_VEL_P_ACC {rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}"
+             f"{_wander(rows)}, wall time {wall_s:.0f} s.", "",
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
              "|---|---|---|---|---|---|---|"]

@@ -52,6 +52,9 @@ def fly_fast(cfg: Config, enc: Encounter, confirm: bool = True) -> EncounterResu
     if enc.with_object:
         raise ValueError("fly_fast: only object-free flights can run faster than real time "
                          "(with an object the vehicle's response feeds back into the camera)")
+    if enc.wander:
+        raise ValueError("fly_fast: the fast run flies the script exactly; a wandering hover "
+                         "(Encounter.wander) flies in real time")
     wall0 = time.monotonic()
     # (a tilting camera stays level too: the script never accelerates)
     camera = SimulatedCamera(enc, _Script(enc.altitude_m, enc.own_speed_mps), world=world_for(cfg, enc),

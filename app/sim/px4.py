@@ -26,6 +26,8 @@ as it talks to PX4. What it reproduces (PX4 v1.14+ behaviour):
   mission whose progress advances while the mode is Mission.
 - After its offboard-loss failsafe, going back to Offboard by itself once setpoints stream
   again for ``OF_RESUME_S`` (PX4 does: seen on SITL 0.49-0.52 s after the link returned).
+- Optionally (``wander``), a hover that is not still: :class:`Wander` adds to the position
+  the drift PX4 SITL's SIH quadrotor shows in Hold (as a real hover does in wind on GPS).
 
 It runs in its own thread at ``rate_hz``; everything it received is kept for tests.
 """
@@ -69,6 +71,45 @@ GRAVITY_MPS2 = 9.81
 OF_RESUME_S = 0.5  # PX4 leaves its offboard-loss failsafe after setpoints stream this long, s
 
 
+# The wander of PX4 SITL's SIH hover (docs/sitl.md): ±0.5 m across, ±0.3 m up and down over a
+# minute, at up to 0.7 m/s; its position strays from the straight line through its velocity
+# by 0.053 / 0.095 / 0.131 / 0.172 m RMS in 0.5 / 0.8 / 1.0 / 1.2 s (camera plane, 4 flights).
+# A damped oscillator driven by white noise per axis, fitted to that table (Monte Carlo, 800 s
+# per candidate): 0.053 / 0.098 / 0.132 / 0.168 m, up to 0.64 m/s.
+WANDER_SIGMA_M = (0.25, 0.25, 0.15)  # stationary std of the offset, north / east / down
+WANDER_OMEGA_RAD_S = 0.6
+WANDER_ZETA = 0.7
+
+
+class Wander:
+    """An offset from where the vehicle's controllers put it: per axis ``p'' = -2 ζ ω p' -
+    ω² p + q w`` (w white), stationary std ``scale`` × WANDER_SIGMA_M; started from its
+    stationary distribution. ``step(dt)`` gives the change of the offset and its rate now."""
+
+    def __init__(self, scale: float, seed: int) -> None:
+        import numpy as np
+
+        self._rng = np.random.default_rng(seed)
+        w, z = WANDER_OMEGA_RAD_S, WANDER_ZETA
+        self._sigma = [scale * s for s in WANDER_SIGMA_M]
+        self._q = [s * math.sqrt(4.0 * z * w ** 3) for s in self._sigma]  # stationary var = q²/(4ζω³)
+        self.p = [float(self._rng.normal(0.0, s)) for s in self._sigma]
+        self.v = [float(self._rng.normal(0.0, s * w)) for s in self._sigma]
+
+    def step(self, dt: float) -> list[float]:
+        if dt <= 0:
+            return [0.0, 0.0, 0.0]
+        w, z = WANDER_OMEGA_RAD_S, WANDER_ZETA
+        noise = self._rng.normal(0.0, 1.0 / math.sqrt(dt), 3)
+        moved = []
+        for i in range(3):
+            acc = -2.0 * z * w * self.v[i] - w * w * self.p[i] + self._q[i] * float(noise[i])
+            self.v[i] += acc * dt
+            moved.append(self.v[i] * dt)
+            self.p[i] += moved[i]
+        return moved
+
+
 @dataclass
 class Received:
     t: float  # monotonic, s
@@ -106,11 +147,16 @@ class SimPx4:
 
     def __init__(self, gcs_port: int, rate_hz: float = 50.0, of_loss_t_s: float = 1.0,
                  loss_mode: str = "hold", state: SimState | None = None,
-                 prestream_s: float = 1.0, xy_vel_p_acc: float = XY_VEL_P_ACC_DEFAULT) -> None:
+                 prestream_s: float = 1.0, xy_vel_p_acc: float = XY_VEL_P_ACC_DEFAULT,
+                 wander: float = 0.0, wander_seed: int = 0) -> None:
         lo, hi = XY_VEL_P_ACC_RANGE
         if not lo <= xy_vel_p_acc <= hi:
             raise ValueError(f"MPC_XY_VEL_P_ACC {xy_vel_p_acc:g}: PX4 accepts {lo:g}-{hi:g}")
         self.prestream_s = prestream_s
+        # the hover's drift, a multiple of SIH's (0: still); added to the position it moves
+        if not 0.0 <= wander <= 5.0:
+            raise ValueError(f"wander {wander:g}: a multiple of SIH's hover drift, 0-5")
+        self._wander = Wander(wander, wander_seed) if wander > 0 else None
         self.gcs_port = gcs_port
         self.rate_hz = rate_hz
         self.of_loss_t_s = of_loss_t_s
@@ -179,7 +225,8 @@ class SimPx4:
         """The true state now: position NED (m, home at 0), velocity NED (m/s), yaw (rad)."""
         with self._lock:
             st = self.state
-            return tuple(st.pos_ned), tuple(st.vel_ned), st.yaw_rad  # type: ignore[return-value]
+            n, e, d = st.pos_ned
+            return (n, e, d), self._velocity(), st.yaw_rad
 
     def attitude(self) -> tuple[float, float, float]:
         """The true attitude now: roll, pitch, yaw (rad)."""
@@ -189,9 +236,18 @@ class SimPx4:
     def velocity_body(self) -> tuple[float, float, float]:
         """The vehicle's velocity, forward/right/down m/s."""
         with self._lock:
-            n, e, d = self.state.vel_ned
+            n, e, d = self._velocity()
             c, s = math.cos(self.state.yaw_rad), math.sin(self.state.yaw_rad)
             return (c * n + s * e, -s * n + c * e, d)
+
+    def _velocity(self) -> tuple[float, float, float]:
+        """What the vehicle moves at: its controllers' velocity and the wander's rate."""
+        st = self.state
+        n, e, d = st.vel_ned
+        if self._wander is None or not (st.armed and st.in_air):
+            return (n, e, d)
+        wn, we, wd = self._wander.v
+        return (n + wn, e + we, d + wd)
 
     # ------------------------------------------------------------------ loop
 
@@ -356,6 +412,9 @@ class SimPx4:
             accel[i] = max(-lim, min(lim, dv)) / dt if dt > 0 else 0.0
             st.vel_ned[i] += accel[i] * dt
             st.pos_ned[i] += st.vel_ned[i] * dt
+        if self._wander is not None:
+            for i, moved in enumerate(self._wander.step(dt)):
+                st.pos_ned[i] += moved
         if st.tilts and dt > 0:
             # a multirotor accelerates sideways by tilting its thrust: tan(tilt) = a / g, the
             # nose down (negative pitch) to speed up forward, the right side down (positive
@@ -398,7 +457,7 @@ class SimPx4:
             landed = ml.MAV_LANDED_STATE_IN_AIR if st.in_air else ml.MAV_LANDED_STATE_ON_GROUND
             mav.extended_sys_state_send(ml.MAV_VTOL_STATE_MC, landed)
         n, e, d = st.pos_ned
-        vn, ve, vd = st.vel_ned
+        vn, ve, vd = self._velocity()
         mav.local_position_ned_send(boot_ms, n, e, d, vn, ve, vd)
         lat = lat0 + n / 111_320.0
         lon = lon0 + e / (111_320.0 * math.cos(math.radians(lat0)))

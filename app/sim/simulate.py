@@ -56,6 +56,8 @@ class Encounter:
     with_object: bool = True
     world: str = ""  # "package.module:factory" of another world (app.sim.world.load_world); "": built-in
     xy_vel_p_acc: float = 1.8  # the stand-in vehicle's MPC_XY_VEL_P_ACC (PX4's default 1.8)
+    # the stand-in's hover drifts as PX4 SITL's does, times this (app.sim.px4.Wander); 0: still
+    wander: float = 0.0
     # the camera is fixed to the body and banks and pitches with the vehicle's acceleration
     # (app.sim.world.Tilted); False: held level, as by a gimbal
     tilt: bool = False
@@ -270,7 +272,8 @@ async def _encounter(cfg: Config, enc: Encounter, out_dir: Path | None, save_fra
                              cruise_mps=enc.own_speed_mps, tilts=enc.tilt)
             state.pos_ned = [0.0, 0.0, -enc.altitude_m]
             port = free_udp_port()
-            sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc).start()
+            sim = SimPx4(port, state=state, xy_vel_p_acc=enc.xy_vel_p_acc, wander=enc.wander,
+                         wander_seed=enc.seed).start()
             connection = f"udpin://0.0.0.0:{port}"
         assert connection is not None
         link = Px4Link(connection, with_pose=sim is None or pose_from_telemetry)
