@@ -232,6 +232,28 @@ def test_a_collision_course_crossing_at_45_degrees_is_not_escaped_into_its_path(
     assert abs(cmd.down_mps) > abs(cmd.right_mps)
 
 
+def test_among_equally_good_escapes_one_that_keeps_off_the_estimated_passage_is_taken() -> None:
+    """Open loop, seed 43's crossing set (4580152): a 0.76 m bird from the right, 41° off the
+    nose, its passage fused 0.21 m above and 0.06 m right (±0.33 m; the truth the same).
+    Down-left, left and up-left leave the same worst-case miss to within EQUAL_MISS_M; of
+    them up-left runs least with the bird's motion, but drifts up, towards the passage: the
+    escape takes one that keeps off it."""
+    d = 0.76
+    q, w = (14.14, -2.35, 21.08), (-11.30, 1.66, -17.00)  # camera XYZ in sizes, and per s
+    z = q[2] * d
+    tau = q[2] / -w[2]
+    o = ObjectState(4, (q[0] * d, q[1] * d, z), 0.0, True, z / tau, tau, source="fused", tau_s=tau,
+                    tau_std_s=0.05, miss_sizes=((q[0] + w[0] * tau), (q[1] + w[1] * tau)),
+                    miss_sizes_std=0.33 / d, diameter_m=d, course_sizes=(q, w))
+    (_size, passage, std), = o.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert passage[0] == pytest.approx(0.06, abs=0.02) and passage[1] == pytest.approx(-0.21, abs=0.02)
+    assert std == pytest.approx(0.33)
+    direction = DecisionMaker(CFG, CAM)._escape([o], None, can_descend=True)
+    assert direction is not None
+    assert direction[0] * passage[0] + direction[1] * passage[1] <= 0.0  # not towards it
+    assert direction[0] < 0  # with the two escapes it tied: left, not into the bird's approach
+
+
 def test_looming_that_no_object_could_have_is_not_fused_with_the_range() -> None:
     """Depth puts it 11 m off; the blob's looming says τ 0.24 s, i.e. 46 m/s: a blob that
     changed size. The fused object keeps the depth track's time and passage, not that."""
