@@ -260,15 +260,22 @@ HEAD_ON = Encounter(seed=5, object_speed_mps=4.0, approach_deg=8.0, miss_m=0.0, 
 
 @pytest.mark.timeout(120)
 def test_a_ball_on_collision_course_is_dodged_and_the_run_is_written_out(tmp_path: Path) -> None:
-    code = main(["simulate", "--out", str(tmp_path), "--seed", "5", "--speed", "4", "--angle", "8",
-                 "--trigger", "ttc"])
-    assert code == 0
-    row = json.loads((tmp_path / "encounter.json").read_text())
+    # flown again (at most 3 times, each into its own folder) when a flight dropped frames, as
+    # _fly_on_time does: on a clean clone here it dropped 8 of ~165 once in the full suite and
+    # none alone; the folder judged is the last, and it must have dropped none
+    for attempt in range(3):
+        out = tmp_path / f"flight{attempt}"
+        code = main(["simulate", "--out", str(out), "--seed", "5", "--speed", "4", "--angle", "8",
+                     "--trigger", "ttc"])
+        assert code == 0
+        row = json.loads((out / "encounter.json").read_text())
+        if row["frames_dropped"] == 0:
+            break
     assert row["threat"] and row["detected"] and row["evaded"]
     assert row["evade_before_cpa_s"] > 0.5
     assert row["success"] and row["min_separation_m"] >= 0.6
-    assert (tmp_path / "annotated.mp4").stat().st_size > 10_000
-    truth = (tmp_path / "truth.csv").read_text().splitlines()
+    assert (out / "annotated.mp4").stat().st_size > 10_000
+    truth = (out / "truth.csv").read_text().splitlines()
     assert truth[0].startswith("frame,t_s,vehicle_n") and len(truth) > 150
     assert row["frames_dropped"] == 0
 
