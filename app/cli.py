@@ -528,13 +528,14 @@ def _cmd_simulate(args: argparse.Namespace, cfg: Config) -> int:
         return _compare(args.compare)
     if args.trigger:
         cfg = with_trigger(cfg, args.trigger)
-    from app.sim.px4 import XY_VEL_P_ACC_RANGE
+    from app.sim.px4 import WANDER_RANGE, XY_VEL_P_ACC_RANGE
 
     if not XY_VEL_P_ACC_RANGE[0] <= args.vel_gain <= XY_VEL_P_ACC_RANGE[1]:
         raise UsageError(f"--vel-gain {args.vel_gain:g}: PX4's MPC_XY_VEL_P_ACC takes "
                          f"{XY_VEL_P_ACC_RANGE[0]:g}-{XY_VEL_P_ACC_RANGE[1]:g}")
-    if not 0.0 <= args.wander <= 5.0:
-        raise UsageError(f"--wander {args.wander:g}: a multiple of PX4 SITL's hover drift, 0-5")
+    if not WANDER_RANGE[0] <= args.wander <= WANDER_RANGE[1]:
+        raise UsageError(f"--wander {args.wander:g}: a multiple of PX4 SITL's hover drift, "
+                         f"{WANDER_RANGE[0]:g}-{WANDER_RANGE[1]:g}")
     if args.wander > 0 and (args.connection or args.open_loop
                             or (args.object_free and not args.realtime_object_free)):
         raise UsageError("--wander drifts the stand-in vehicle: not with --connection (the vehicle "

@@ -77,7 +77,7 @@ STEADY_YAW_DEG = 5.0
 
 async def hover(cruise_mps: float = 0.0) -> None:
     """Take off to a hover in Hold; with ``cruise_mps`` > 0, then fly a Mission leg north at
-    that speed (one waypoint LEG_M north at the take-off altitude) and return once PX4 flies
+    that speed (to a waypoint LEG_M north at the take-off altitude) and return once PX4 flies
     it steadily, as the stand-in's Mission does from the start. (SIH's hover wanders, as a
     real one does in wind on GPS: ±0.5 m and up to 0.7 m/s over a minute measured here, so an
     encounter laid as a collision course from where the vehicle is at its first frame may

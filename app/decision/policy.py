@@ -817,14 +817,16 @@ class DecisionMaker:
                     total -= (d[0] * w[0] + d[1] * w[1]) / max(1e-9, math.hypot(w[0], w[1], w[2]))
             return total
 
+        # every threat's best estimate of its passage (its centre, not the doubt ``towards``
+        # allows); among escapes of equal worst-case miss, one that does not drift towards
+        # them: open loop, seed 43's crossing set, a passage fused 0.21 m above (±0.33; the
+        # truth 0.21) was escaped up-left, whose miss was 0.02 m short of down-left's,
+        # because it ran least with the object's motion
+        centres = [m for o in threats
+                   for _, m, _ in o.passages(c.object_diameter_min_m, c.object_diameter_max_m)]
+
         def away(d: tuple[float, float]) -> bool:
-            """Does ``d`` keep off every threat's best estimate of its passage (its centre, not
-            the doubt ``towards`` allows)? Among escapes of equal worst-case miss, one that
-            does not drift towards that estimate: open loop, seed 43's crossing set, a passage
-            fused 0.21 m above (±0.33; the truth 0.21) was escaped up-left, whose miss was
-            0.02 m short of down-left's, because it ran least with the object's motion."""
-            return not any(d[0] * m[0] + d[1] * m[1] > 0.0 for o in threats
-                           for _, m, _ in o.passages(c.object_diameter_min_m, c.object_diameter_max_m))
+            return not any(d[0] * m[0] + d[1] * m[1] > 0.0 for m in centres)
 
         options = [d for d in _DIRECTIONS if allowed(d)]
         if not options:

@@ -79,6 +79,7 @@ OF_RESUME_S = 0.5  # PX4 leaves its offboard-loss failsafe after setpoints strea
 WANDER_SIGMA_M = (0.25, 0.25, 0.15)  # stationary std of the offset, north / east / down
 WANDER_OMEGA_RAD_S = 0.6
 WANDER_ZETA = 0.7
+WANDER_RANGE = (0.0, 5.0)  # the multiples of it the stand-in takes
 
 
 class Wander:
@@ -91,10 +92,10 @@ class Wander:
 
         self._rng = np.random.default_rng(seed)
         w, z = WANDER_OMEGA_RAD_S, WANDER_ZETA
-        self._sigma = [scale * s for s in WANDER_SIGMA_M]
-        self._q = [s * math.sqrt(4.0 * z * w ** 3) for s in self._sigma]  # stationary var = q²/(4ζω³)
-        self.p = [float(self._rng.normal(0.0, s)) for s in self._sigma]
-        self.v = [float(self._rng.normal(0.0, s * w)) for s in self._sigma]
+        sigma = [scale * s for s in WANDER_SIGMA_M]
+        self._q = [s * math.sqrt(4.0 * z * w ** 3) for s in sigma]  # stationary var = q²/(4ζω³)
+        self.p = [float(self._rng.normal(0.0, s)) for s in sigma]
+        self.v = [float(self._rng.normal(0.0, s * w)) for s in sigma]
 
     def step(self, dt: float) -> list[float]:
         if dt <= 0:
@@ -154,8 +155,9 @@ class SimPx4:
             raise ValueError(f"MPC_XY_VEL_P_ACC {xy_vel_p_acc:g}: PX4 accepts {lo:g}-{hi:g}")
         self.prestream_s = prestream_s
         # the hover's drift, a multiple of SIH's (0: still); added to the position it moves
-        if not 0.0 <= wander <= 5.0:
-            raise ValueError(f"wander {wander:g}: a multiple of SIH's hover drift, 0-5")
+        if not WANDER_RANGE[0] <= wander <= WANDER_RANGE[1]:
+            raise ValueError(f"wander {wander:g}: a multiple of SIH's hover drift, "
+                             f"{WANDER_RANGE[0]:g}-{WANDER_RANGE[1]:g}")
         self._wander = Wander(wander, wander_seed) if wander > 0 else None
         self.gcs_port = gcs_port
         self.rate_hz = rate_hz
