@@ -55,8 +55,14 @@ def test_a_head_on_ball_is_commanded_in_time_and_cleared_open_loop(tmp_path: Pat
     assert res.tracked_before_cpa_s is not None and res.tracked_before_cpa_s > res.command_before_cpa_s
     assert res.source in ("image", "fused") and res.tau_s is not None
     assert res.cleared and res.separation_m > enc.size_m / 2 + 0.45
+    # its predicted passage against the truth's (head-on: through the vehicle), within its doubt
+    assert res.passage_err_m is not None and res.passage_err_m < 0.3
+    assert res.passage_std_m is not None and res.passage_err_sigmas is not None
+    assert res.passage_err_sigmas == pytest.approx(res.passage_err_m / res.passage_std_m, abs=0.02)
     text = write_open_loop(tmp_path, [res])
     assert "threats cleared (main + crossing): 1/1" in text
+    off = int(res.passage_err_sigmas > 2.0)
+    assert f"more than 2 stated std: 0 of 0 image, 0 of 0 depth, {off} of 1 fused" in text
     assert (tmp_path / "openloop.csv").read_text().count("\n") == 2
 
 

@@ -414,27 +414,36 @@ def on_object(box: tuple[float, float, float, float], pixel: tuple[float, float,
     return math.hypot(x + w / 2 - u, y + h / 2 - v) <= max(20.0, 2.0 * r)
 
 
-def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float], window_s: float = 0.3
-                        ) -> tuple[bool | None, bool | None]:
-    """Does an evasion (forward, right, down m/s) commanded at ``frame`` move towards where
-    the object will pass the vehicle (its closest approach, on the relative course the
-    truth had then), and along the object's lateral motion? The course is a straight line
-    fitted to the truth's relative positions over the ``window_s`` before the command: a
+def _true_passage(camera: SimulatedCamera, frame: int, window_s: float = 0.3
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the object will pass the vehicle as the truth had it at ``frame``: its relative
+    position (NED, m) at the closest approach on a straight course fitted to the truth's
+    relative positions over the ``window_s`` before, and that course's velocity (m/s). A
     two-frame difference holds the cruise controller's jitter (0.5 m/s on a 4 m/s leg moved
-    the passage of an object 10 m off by 0.5 m). Body axes are NED here (the vehicle flies
-    north with yaw 0)."""
+    the passage of an object 10 m off by 0.5 m). None: the object is not in the truth then."""
     rows = [t for t in camera.truth if t.object_m is not None and t.frame <= frame]
     if not rows or rows[-1].frame != frame:
-        return None, None
+        return None
     recent = [t for t in rows if t.t_s >= rows[-1].t_s - window_s]
     if len(recent) < 2 or recent[-1].t_s <= recent[0].t_s:
-        return None, None
+        return None
     ts = np.array([t.t_s - recent[-1].t_s for t in recent])
     rel = np.array([np.subtract(t.object_m or (0.0, 0.0, 0.0), t.vehicle_m) for t in recent])  # all set
     slope, icpt = np.polyfit(ts, rel, 1)  # per axis: rel(t) = icpt + slope t, t = 0 at the command
     r, v = icpt, slope
     t = max(0.0, float(-r @ v / (v @ v + 1e-12)))
-    passage = r + v * t  # relative position at the closest approach
+    return r + v * t, v
+
+
+def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float], window_s: float = 0.3
+                        ) -> tuple[bool | None, bool | None]:
+    """Does an evasion (forward, right, down m/s) commanded at ``frame`` move towards where
+    the object will pass the vehicle (:func:`_true_passage`), and along the object's lateral
+    motion? Body axes are NED here (the vehicle flies north with yaw 0)."""
+    truth = _true_passage(camera, frame, window_s)
+    if truth is None:
+        return None, None
+    passage, v = truth
     d = np.array([frd[1], frd[2]], float)
     lateral_passage, lateral_v = passage[1:], v[1:]
     towards = bool(d @ lateral_passage > 0.05 * float(np.linalg.norm(d))) if np.linalg.norm(d) else None
