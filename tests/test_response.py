@@ -345,6 +345,40 @@ def test_a_blob_wider_than_any_plausible_object_does_not_say_where_it_passes() -
     assert one.course_sizes is not None and one.diameter_m == pytest.approx(0.27)
 
 
+def test_a_blob_that_keeps_its_size_while_depth_says_it_closes_does_not_say_where_it_passes() -> None:
+    """A ball 5.4 m off crossing in front of a tree, 1.3 s from the camera plane by depth
+    (4.2 ± 0.4 m/s), passing 0.14 m right and 0.22 m up (the depth track says so within
+    0.7 m). Its blob is the tree's edge too: it keeps one size (expansion 0.0 ± 0.03 /s, where
+    the ball's is 0.78) and its centre stays put while the ball moves right, so the image's
+    bearing rate puts the passage 0.04 m left, within 0.05 m, and the escape went right, into
+    it (open loop, seed 43's crossing set). A blob whose size contradicts the range's closing
+    is not the object's: the depth track's passage decides, and the escape keeps off it. A
+    crossing ball that closes slowly, its blob expanding as depth says, keeps the image's
+    passage."""
+    from app.decision.looming import ImageEstimate
+
+    z, tau = 5.4, 1.29
+    dm = DecisionMaker(CFG, CAM)
+
+    def depth(closing: float) -> ObjectState:
+        return ObjectState(1, (0.08, -0.12, z), 0.0, True, closing, z / closing, (0.14, -0.22),
+                           tau_s=z / closing, tau_std_s=0.1, crossing_std_m=0.7, closing_std_mps=0.4)
+
+    def image(expansion: float) -> ImageEstimate:
+        return ImageEstimate(0.0, 20, (0.015, -0.022), (-0.006, -0.02), 0.11, expansion, 0.03, None, None,
+                             None, None, 0.001, size_chi2=3.3)
+
+    merged = dm._fuse(depth(z / tau), image(0.0), 1)
+    assert merged.miss_sizes is None and merged.course_sizes is None
+    (_, passage, std), = merged.passages(CFG.object_diameter_min_m, CFG.object_diameter_max_m)
+    assert passage[:2] == pytest.approx((0.14, -0.22)) and std == pytest.approx(0.7)
+    escape = dm._escape([merged], None, True)
+    assert escape is not None and escape[0] * 0.14 + escape[1] * -0.22 <= 0.0  # not towards it
+    slow = DecisionMaker(CFG, CAM)._fuse(depth(0.8), image(0.15), 1)  # 0.81 m/s either way
+    assert slow.source == "fused" and slow.miss_sizes is not None
+    assert slow.miss_sizes[0] < 0  # the image's bearing rate: left
+
+
 def test_a_close_object_with_no_passage_yet_is_escaped_away_from_where_it_is() -> None:
     """First measured 0.7 m off, to the left and below, its depth track too young to say it
     closes: the paper's distance rule makes it a threat, and nothing says where it passes.
