@@ -379,6 +379,38 @@ def test_a_blob_that_keeps_its_size_while_depth_says_it_closes_does_not_say_wher
     assert slow.miss_sizes[0] < 0  # the image's bearing rate: left
 
 
+def test_a_looming_time_that_strays_from_the_ranges_is_trusted_only_as_far_as_they_agree() -> None:
+    """A bird 11 m off, closing at 4.2 ± 0.8 m/s by depth (2.6 s to go). Its blob grew from
+    7 to 10 px in one frame and its looming says τ 1.1 ± 0.2 s (10 m/s): 2.9 combined standard
+    errors apart, not far enough to drop the image. The fused τ is the image's, with its error
+    scaled up by that disagreement, and the trigger waits (it was escaped 2.7 s early, the way
+    it would pass: open loop, seed 43's crossing set). Where the two agree the image's error
+    stands and the same object, 1.1 s out, is acted on."""
+    from app.decision.looming import ImageEstimate
+
+    z, d = 11.0, 0.32
+    dm = DecisionMaker(CFG, CAM)
+    depth = ObjectState(2, (0.2, -0.1, z), 0.0, True, 4.16, z / 4.16, (0.3, -0.2), tau_s=z / 4.16,
+                        tau_std_s=0.48, crossing_std_m=0.9, closing_std_mps=0.77)
+
+    def image(tau: float) -> ImageEstimate:
+        p, passage = (0.2, -0.1, z), (0.3, -0.2)
+        v = ((passage[0] - p[0]) / tau, (passage[1] - p[1]) / tau, -z / tau)
+        return ImageEstimate(0.0, 20, (p[0] / z, p[1] / z), (0.0, 0.0), d / z, 1 / tau, 0.05, tau, 0.21,
+                             (passage[0] / d, passage[1] / d), 0.3 / d, 0.0,
+                             tuple(c / d for c in p), tuple(c / d for c in v))  # type: ignore[arg-type]
+
+    apart = dm._fuse(depth, image(1.09), 2)
+    assert apart.source == "fused" and apart.tau_s == pytest.approx(1.09)
+    gap = abs(z / 1.09 - 4.16) / math.hypot(z * 0.21 / 1.09**2, 0.77)
+    assert 2.5 < gap < 3.0 and apart.tau_std_s == pytest.approx(0.21 * gap)
+    assert dm.assess(apart) is None  # too unsure when, and not urgent even at its latest
+    agreed = DecisionMaker(CFG, CAM)._fuse(dataclasses.replace(depth, closing_mps=z / 1.09, ttc_s=1.09,
+                                                               tau_s=1.09), image(1.09), 2)
+    assert agreed.tau_std_s == pytest.approx(0.21)
+    assert dm.assess(agreed) is not None
+
+
 def test_a_close_object_with_no_passage_yet_is_escaped_away_from_where_it_is() -> None:
     """First measured 0.7 m off, to the left and below, its depth track too young to say it
     closes: the paper's distance rule makes it a threat, and nothing says where it passes.

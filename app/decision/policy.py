@@ -482,6 +482,7 @@ class DecisionMaker:
         seen = max(o.seen_s, self._seen.get(tid, -math.inf))  # matched in the image counts too
         if e is not None and e.tau_s is not None and e.tau_s > 0 and o.z_m / e.tau_s > MAX_CLOSING_MPS:
             e = None  # the range says its looming is impossible: a blob's size jumped, not the object
+        gap = 0.0  # the two closing speeds apart, in their combined standard errors
         if e is not None and o.closing_std_mps is not None and o.z_m > 0:
             # The image's closing speed (Z / τ, or Z x the blob's expansion where it does not
             # loom) against the depth track's, each with its error: further apart than
@@ -499,17 +500,23 @@ class DecisionMaker:
                 v_img, s_img = o.z_m / e.tau_s, o.z_m * e.tau_std_s / e.tau_s**2
             elif e.size_chi2 <= self.cfg.looming_max_chi2:
                 v_img, s_img = o.z_m * e.expansion_per_s, o.z_m * e.expansion_std
-            if (v_img is not None and s_img is not None
-                    and abs(v_img - o.closing_mps) > CLOSING_SIGMAS * math.hypot(s_img, o.closing_std_mps)):
-                e = None
+            if v_img is not None and s_img is not None:
+                gap = abs(v_img - o.closing_mps) / max(1e-9, math.hypot(s_img, o.closing_std_mps))
+                if gap > CLOSING_SIGMAS:
+                    e = None
         if e is None or not o.fresh:
             return dataclasses.replace(o, seen_s=seen)
         tau, tau_std = o.tau_s, o.tau_std_s
         if e.tau_s is not None and e.tau_std_s is not None:
             # Looming's τ, not the depth track's: the depth velocity starts from rest (or
             # from the image) and its error is biased, not only noisy, for its first frames
-            # (an inverse-variance blend pulled τ 0.2-0.4 s late in the closed loop).
-            tau, tau_std = e.tau_s, e.tau_std_s
+            # (an inverse-variance blend pulled τ 0.2-0.4 s late in the closed loop). Its
+            # error is scaled up by how far the two closing speeds stray apart beyond their
+            # stated errors (as the fits scale theirs by the residuals, never down): a blob
+            # of 7 px that grew to 10 in one frame read τ 1.1 ± 0.2 s where depth said
+            # 2.6 ± 0.5 (the truth 2.8), and a slow bird was escaped 2.7 s early, the way
+            # it would pass (open loop, seed 43's crossing set)
+            tau, tau_std = e.tau_s, e.tau_std_s * max(1.0, gap)
         diameter = o.z_m * e.size_rad if o.z_m > 0 else None
         if diameter is not None and diameter > self.cfg.object_diameter_max_m:
             # A blob larger at its range than any plausible object is not one object (merged
