@@ -477,9 +477,12 @@ class DecisionConfig:
     object_diameter_max_m: float = param(
         1.0, "largest plausible object (a large drone, a big bird), m", gt=0
     )
-    image_confirm_frames: int = param(
-        3, "response trigger: an object seen in the image only (no range) must be urgent this "
-        "many frames in a row, each consistent with the last, before it triggers", ge=1,
+    image_confirm_s: float = param(
+        0.06, "response trigger: an object seen in the image only (no range) must be urgent in "
+        "consecutive frames, each consistent with the last, the first this long before the "
+        "latest (a quarter frame spared for jitter; at least 3 frames) before it triggers: 3 "
+        "frames at 30 fps, 5 at 60, so that a faster camera does not ask less evidence time, s",
+        gt=0,
     )
     passage_sigmas: float = param(
         1.0, "the predicted passage is judged this many standard errors towards the vehicle "
@@ -682,11 +685,20 @@ def config_from_mapping(data: Any, source: str = "config") -> Config:
     return cfg
 
 
+# Keys a config file of an earlier version may hold, and what took their place.
+RENAMED = {
+    "decision.image_confirm_frames": "use decision.image_confirm_s, the same evidence in seconds "
+                                     "(3 frames at 30 fps: 0.06), which holds at any frame rate",
+}
+
+
 def _build(cls: type[T], data: Mapping[str, Any], prefix: str) -> T:
     hints = get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
     for key in data:
         if key not in fields:
+            if f"{prefix}{key}" in RENAMED:
+                raise ConfigError(f"{prefix}{key}: no longer a setting: {RENAMED[f'{prefix}{key}']}")
             known = ", ".join(sorted(fields))
             raise ConfigError(f"{prefix}{key}: unknown key (known here: {known})")
     kwargs: dict[str, Any] = {}

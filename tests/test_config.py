@@ -86,6 +86,13 @@ def test_unknown_key_is_named_with_the_known_ones() -> None:
     assert "dist_px" in msg
 
 
+def test_a_renamed_key_says_what_replaced_it() -> None:
+    with pytest.raises(ConfigError) as exc:
+        config_from_mapping({"decision": {"image_confirm_frames": 3}})
+    assert str(exc.value).startswith("decision.image_confirm_frames: no longer a setting: use "
+                                     "decision.image_confirm_s")
+
+
 def test_integers_are_accepted_for_floats() -> None:
     cfg = config_from_mapping({"perception": {"tracking": {"lost_s": 2}}})
     assert cfg.perception.tracking.lost_s == 2.0

@@ -33,13 +33,14 @@ def image_obj(tau: float, miss_sizes: tuple[float, float], bearing: tuple[float,
                        miss_sizes_std=miss_std, seen_s=t, reported=reported)
 
 
-def frames(dm: DecisionMaker, make, n: int = 3, alt: float = ALT, t0: float = 0.0):
-    """``n`` consecutive frames of the same course (``make(tau_shift, t)`` builds the objects
-    seen then): an image-only object must be urgent for image_confirm_frames frames."""
+def frames(dm: DecisionMaker, make, n: int = 3, alt: float = ALT, t0: float = 0.0, fps: float = 30.0):
+    """``n`` consecutive frames at ``fps`` of the same course (``make(tau_shift, t)`` builds the
+    objects seen then): an image-only object must be urgent for image_confirm_s (3 frames at 30
+    fps)."""
     cmd = None
     for k in range(n):
-        t = t0 + k / 30.0
-        cmd = dm.decide_response(make(k / 30.0, t), t, alt)
+        t = t0 + k / fps
+        cmd = dm.decide_response(make(k / fps, t), t, alt)
     return cmd
 
 
@@ -92,6 +93,21 @@ def test_a_threat_is_evaded_once_the_time_left_falls_to_the_vehicles_need() -> N
     cmd = frames(dm, lambda dt, t: [image_obj(late - 1 / 30 - dt, (0.0, 0.0), t=t)], n=2, t0=1.0 + 1 / 30)
     assert cmd.action == EVADE and "tau" in cmd.reason and "need" in cmd.reason and "(image)" in cmd.reason
     assert math.isclose(cmd.speed_mps, min(CFG.evade_speed_mps, CFG.max_speed_mps))
+
+
+@pytest.mark.parametrize(("fps", "needed"), [(30.0, 3), (60.0, 5)])
+def test_an_image_only_threat_must_hold_for_the_same_time_at_any_frame_rate(fps: float, needed: int) -> None:
+    """image_confirm_s is evidence time, not a frame count: at 60 fps three urgent frames
+    (33 ms of a blob's flicker; in the open loop such runs triggered escapes 2-3 s early on a
+    blob merged with the horizon) do not trigger, and 67 ms of them do, as 3 frames at 30."""
+
+    def course(dt: float, t: float) -> list[ObjectState]:
+        return [image_obj(0.5 - dt, (0.0, 0.0), t=t)]
+
+    assert frames(DecisionMaker(CFG, CAM), course, n=needed - 1, fps=fps).action == NONE
+    assert frames(DecisionMaker(CFG, CAM), course, n=needed, fps=fps).action == EVADE
+    # a skipped frame does not cut the evidence to two estimates, however long apart
+    assert frames(DecisionMaker(CFG, CAM), course, n=2, fps=fps / 3).action == NONE
 
 
 def test_a_crossing_object_is_passed_behind_not_dodged_from_where_it_is() -> None:

@@ -58,8 +58,13 @@ MAX_TAU_REL_STD_IMAGE = 0.5
 # over τ) has a blob that changed size, not an object that came nearer (seen: τ 0.24 s at 11 m,
 # 47 m/s, 1.8 s before the passage, and an escape towards it), m/s
 MAX_CLOSING_MPS = 30.0
-# a fused track's looming must be urgent this many frames in a row, each consistent with the last
-FUSED_CONFIRM_FRAMES = 2
+# a fused track's looming must be urgent in consecutive frames, each consistent with the last,
+# the first this long before the latest (two frames at 30 fps, as when it was counted in frames;
+# three at 60), s
+FUSED_CONFIRM_S = 0.03
+# the fewest such frames whatever the frame rate (their counts at 30 fps: a frame the perception
+# thread skipped does not shorten the evidence to two estimates)
+IMAGE_CONFIRM_FRAMES, FUSED_CONFIRM_FRAMES = 3, 2
 # A fused object that perception does not report must have its image's closing speed (Z / τ)
 # confirmed by the depth measurements' own: the range rate over this long at most, s ...
 RANGE_RATE_WINDOW_S = 0.5
@@ -359,7 +364,8 @@ class DecisionMaker:
         self._tracks: dict[int, _Track3D] = {}
         self._looming: dict[int, LoomingEstimator] = {}
         self._seen: dict[int, float] = {}
-        self._image_votes: dict[int, tuple[int, float, float]] = {}  # id -> (frames, tau, t)
+        # id -> (frames in a row, the latest tau, its time, the first frame's time)
+        self._image_votes: dict[int, tuple[int, float, float, float]] = {}
         self._engaged: _Engagement | None = None
         self.response = ResponseModel(cfg.response_dead_time_s, cfg.response_lag_s,
                                       cfg.response_accel_mps2, min(cfg.evade_speed_mps, cfg.max_speed_mps))
@@ -719,22 +725,26 @@ class DecisionMaker:
             a = self.assess(o)
             urgent = a is not None and a[0] <= a[1] + c.trigger_margin_s
             if urgent and o.source in ("image", "fused"):
-                # The image's time left must say so for several frames in a row, each time
-                # consistent with the last (shrinking with the clock): image_confirm_frames
+                # The image's time left must say so over consecutive frames, each time
+                # consistent with the last (shrinking with the clock): image_confirm_s
                 # without a range, where nothing else vouches for it (clutter's looming
                 # flickers: object-free flights at 2-3 m/s over ground evaded 12 times in 10
-                # minutes on single-frame image estimates), two with one (a fused track's
-                # looming collapsed 1.5 -> 0.01 s for one frame and turned an escape to the
-                # wrong side: docs/measurements.md).
+                # minutes on single-frame image estimates), two frames' worth with one (a
+                # fused track's looming collapsed 1.5 -> 0.01 s for one frame and turned an
+                # escape to the wrong side: docs/measurements.md). In time, not only frames: at
+                # 60 fps three frames are 33 ms of a blob's flicker (docs/measurements.md).
                 assert o.tau_s is not None and o.tau_std_s is not None
-                n, tau0, t0 = self._image_votes.get(o.track_id, (0, math.nan, -math.inf))
+                n, tau0, t0, first = self._image_votes.get(o.track_id, (0, math.nan, -math.inf, t_s))
                 expect = tau0 - (t_s - t0)
                 consistent = abs(o.tau_s - expect) <= 0.3 * max(expect, 0.0) + 0.05
                 sure = (o.tau_std_s <= MAX_TAU_REL_STD_IMAGE * o.tau_s if o.source == "image"
                         else o.reported or _depth_confirms(o))
                 n = (n + 1 if n and consistent and t_s - t0 < 0.2 else 1) if sure else 0
-                votes[o.track_id] = (n, o.tau_s, t_s)
-                urgent = n >= (c.image_confirm_frames if o.source == "image" else FUSED_CONFIRM_FRAMES)
+                first = first if n > 1 else t_s
+                votes[o.track_id] = (n, o.tau_s, t_s, first)
+                need_s, fewest = ((c.image_confirm_s, IMAGE_CONFIRM_FRAMES) if o.source == "image"
+                                  else (FUSED_CONFIRM_S, FUSED_CONFIRM_FRAMES))
+                urgent = _held(n, t_s - first, need_s, fewest)
             if urgent:
                 assert a is not None
                 threats.append((o, f"tau {a[0]:.2f} s <= need {a[1]:.2f} + {c.trigger_margin_s:g} s "
@@ -916,6 +926,15 @@ class DecisionMaker:
             if not any(closes_on(d, *self._aim(t)) for t in vetoes):
                 return d
         return None
+
+
+def _held(frames: int, elapsed_s: float, need_s: float, min_frames: int) -> bool:
+    """Have ``frames`` consecutive frames (at least ``min_frames``), the first ``elapsed_s``
+    before the latest, lasted ``need_s``? A quarter of the run's mean frame interval is spared
+    for clock jitter: 0.06 s is 3 frames at 30 fps and 5 at 60, the same 67 ms either way."""
+    if frames < max(2, min_frames):
+        return False
+    return elapsed_s >= need_s - 0.25 * elapsed_s / (frames - 1)
 
 
 def _depth_confirms(o: ObjectState) -> bool:
