@@ -720,7 +720,7 @@ class DecisionMaker:
 
         # 2. Threats: time left down to the need (+ margin); the paper's distance rule too.
         threats: list[tuple[ObjectState, str]] = []
-        votes: dict[int, tuple[int, float, float]] = {}
+        votes: dict[int, tuple[int, float, float, float]] = {}
         for o in objects:
             a = self.assess(o)
             urgent = a is not None and a[0] <= a[1] + c.trigger_margin_s
