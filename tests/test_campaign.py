@@ -23,6 +23,7 @@ pytest.importorskip("mavsdk")
 pytest.importorskip("pymavlink")
 
 from app.cli import main  # noqa: E402
+from app.sim.campaign import write_report  # noqa: E402
 
 
 def _result(seed: int, success: bool, threat: bool = True, **kw: object) -> EncounterResult:
@@ -76,6 +77,15 @@ def test_the_log_keeps_what_finished_and_a_resume_skips_it(tmp_path: Path) -> No
     assert len(read_results(tmp_path)) == 3
     with pytest.raises(UsageError, match="not a campaign folder"):
         ResultLog(tmp_path / "nowhere", plan, resume=True)
+
+
+def test_a_report_of_object_free_flight_alone_names_the_rate_it_was_flown_at(tmp_path: Path) -> None:
+    """No main set to read the frame rate from: the object-free flights say it (a 60 fps run
+    of them was reported as 30)."""
+    free = [EncounterResult(Encounter(seed=s, with_object=False, fps=60.0), False, false_evasions=0,
+                            success=True, frames=1800, wall_s=30.0) for s in (1, 2)]
+    report = write_report(tmp_path, [], free, load_config(None), 60.0).read_text()
+    assert "at 60 fps" in report and "at 30 fps" not in report
 
 
 def test_poisson_upper_bounds_match_the_exact_tables() -> None:

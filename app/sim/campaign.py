@@ -204,11 +204,13 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
     tmp.replace(out / "encounters.csv")
     threats = [r for r in rows if r.threat]
     course = [r for r in threats if r.encounter.miss_m < 0.15]
+    # what every set was flown with (a campaign of object-free flights alone has no main rows)
+    flown = next((r.encounter for r in [*rows, *wide, *crossing, *free]), Encounter())
     lines = [f"# {title}", "",
              f"{len(rows)} encounters ({len(threats)} threats: would pass within the two radii + "
              f"{0.2:g} m if nobody moved), trigger `{cfg.decision.trigger}`, camera "
-             f"{_lens(cfg)} at {rows[0].encounter.fps if rows else 30:g} fps, stand-in vehicle's "
-             f"MPC_XY_VEL_P_ACC {rows[0].encounter.xy_vel_p_acc if rows else 1.8:g}"
+             f"{_lens(cfg)} at {flown.fps:g} fps, stand-in vehicle's "
+             f"MPC_XY_VEL_P_ACC {flown.xy_vel_p_acc:g}"
              f"{_wander(rows)}, wall time {wall_s:.0f} s.", "",
              "| set | success | detected | detection range median, m | detected before CPA median, s "
              "| evasion before CPA median, s | min separation median, m |",
