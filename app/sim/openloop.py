@@ -51,7 +51,7 @@ from app.sim.simulate import (
     VEHICLE_RADIUS_M,
     Encounter,
     SimulatedCamera,
-    _direction_vs_truth,
+    _direction_vs_passage,
     _true_passage,
     on_object,
     world_for,
@@ -156,27 +156,26 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
         res.command_before_cpa_s = round(enc.t_cpa_s - t_cmd, 3)
         res.right_mps, res.down_mps = round(command.right_mps, 3), round(command.down_mps, 3)
         obj = next((o for o in objects if o.track_id == command.object_id), None)
+        passages = []
         if obj is not None:
             res.source = obj.source
             res.tau_s = None if obj.tau_s is None else round(obj.tau_s, 3)
             tid = obj.track_id
             res.track_age_s = round(t_s - first_2d.get(tid, t_s), 3)
             res.depth_age_s = round(t_s - first_3d[tid], 3) if tid in first_3d else None
-            stds = [s for _, _, s in obj.passages(cfg.decision.object_diameter_min_m,
-                                                  cfg.decision.object_diameter_max_m)]
-            res.passage_std_m = round(min(stds), 3) if stds else None
+            passages = obj.passages(cfg.decision.object_diameter_min_m, cfg.decision.object_diameter_max_m)
+            res.passage_std_m = round(min(s for _, _, s in passages), 3) if passages else None
         t_cmd_s = t_cmd
         truth = _true_passage(camera, result.frame.index) if enc.with_object else None
-        if obj is not None and truth is not None:
-            _passage_error(res, obj.passages(cfg.decision.object_diameter_min_m,
-                                             cfg.decision.object_diameter_max_m), truth[0], enc.size_m)
+        if truth is not None:
+            _passage_error(res, passages, truth[0], enc.size_m)
         if enc.with_object:
             rel = enc.relative_path(np.array([t_cmd]))[0]
             closing = enc.own_speed_mps - enc.object_path()[1][0]  # north: the camera's Z
             res.true_tau_s = round(rel[0] / closing, 3) if closing > 0 else None
             if 20.0 <= abs(enc.approach_deg) <= 50.0 and command.action == EVADE:
-                res.towards_passage, _ = _direction_vs_truth(camera, result.frame.index,
-                                                             [0.0, command.right_mps, command.down_mps])
+                res.towards_passage, _ = _direction_vs_passage(
+                    truth, [0.0, command.right_mps, command.down_mps])
         break
     if window[0] and (t_cmd_s is None or enc.t_cpa_s - t_cmd_s <= 1.0):
         res.reported_share_2_1 = round(window[1] / window[0], 3)
@@ -266,7 +265,7 @@ def write_open_loop(out: Path, results: list[OpenLoopResult], in_view_s: float =
 
     def doubt(source: str) -> str:
         judged = [r for r in results if r.source == source and r.passage_err_sigmas is not None]
-        off = sum(r.passage_err_sigmas is not None and r.passage_err_sigmas > 2.0 for r in judged)
+        off = sum((r.passage_err_sigmas or 0.0) > 2.0 for r in judged)
         return f"{off} of {len(judged)}"
 
     def median(vals: list[float | None]) -> str:

@@ -440,7 +440,13 @@ def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float], w
     """Does an evasion (forward, right, down m/s) commanded at ``frame`` move towards where
     the object will pass the vehicle (:func:`_true_passage`), and along the object's lateral
     motion? Body axes are NED here (the vehicle flies north with yaw 0)."""
-    truth = _true_passage(camera, frame, window_s)
+    return _direction_vs_passage(_true_passage(camera, frame, window_s), frd)
+
+
+def _direction_vs_passage(truth: tuple[np.ndarray, np.ndarray] | None, frd: list[float]
+                          ) -> tuple[bool | None, bool | None]:
+    """:func:`_direction_vs_truth` for a passage already worked out (``truth``:
+    :func:`_true_passage`'s answer)."""
     if truth is None:
         return None, None
     passage, v = truth
