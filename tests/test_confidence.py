@@ -146,21 +146,56 @@ def test_confidence_prefers_a_steady_object_in_plain_sky() -> None:
     assert bird.confidence == pytest.approx(1 / (1 + math.exp(-z)))
 
 
+def _sky_with(square: tuple[int, int] | None, grey: int = 60) -> np.ndarray:
+    """Plain sky (170) with an 8 px square of ``grey`` at (x, y), or none."""
+    sky = np.full((480, 640), 170, np.uint8)
+    if square is not None:
+        sky[square[1]:square[1] + 8, square[0]:square[0] + 8] = grey
+    return sky
+
+
 def test_a_confident_track_is_reported_while_coasting_and_forgotten_when_gone() -> None:
     cfg = _cfg(min_confidence=0.5, bias=-1.0, w_matched=2.0, w_match_fraction=4.0)
-    sky = np.full((480, 640), 170, np.uint8)
     scorer = TrackConfidence(cfg)
     trail: tuple[tuple[float, float], ...] = ()
     for i in range(8):
         trail = (*trail, (100.0 + 3 * i, 100.0))
-        scorer(sky, [_report(1, _square(96 + 3 * i, 96), trail)])
-    coasting = scorer(sky, [_report(1, None, (*trail, (124.0, 100.0)))])[0]
-    assert not coasting.matched and coasting.reported  # 8 of 9 frames matched: still believed
+        scorer(_sky_with((96 + 3 * i, 96)), [_report(1, _square(96 + 3 * i, 96), trail)])
+    # the object stops where it was last matched (a drone that hovers: no frame difference)
+    still = _sky_with((117, 96))
+    coasting = scorer(still, [_report(1, None, (*trail, (121.0, 100.0)))])[0]
+    assert not coasting.matched and coasting.in_sight and coasting.reported  # 8 of 9 matched: believed
     for _ in range(10):
-        coasting = scorer(sky, [_report(1, None, (*trail, (124.0, 100.0)))])[0]
-    assert not coasting.reported  # 10 misses in a row: no longer
-    scorer(sky, [])
+        coasting = scorer(still, [_report(1, None, (*trail, (121.0, 100.0)))])[0]
+    assert coasting.in_sight and not coasting.reported  # 10 misses in a row: no longer
+    scorer(still, [])
     assert scorer._evidence == {}
+
+
+def test_a_coasting_track_is_reported_only_where_its_look_is_still_found() -> None:
+    cfg = _cfg(min_confidence=0.5, bias=-1.0, w_matched=2.0, w_match_fraction=4.0)
+    trail = tuple((100.0 + 3 * i, 100.0) for i in range(8))
+
+    def coast(image: np.ndarray, c: ConfidenceConfig = cfg, at: tuple[float, float] = (124.0, 100.0)
+              ) -> TrackReport:
+        scorer = TrackConfidence(c)
+        for i in range(8):
+            scorer(_sky_with((96 + 3 * i, 96)), [_report(1, _square(96 + 3 * i, 96), trail[:i + 1])])
+        return scorer(image, [_report(1, None, (*trail, at))])[0]
+
+    # the prediction ran on 3 px past the object, which stayed (within coast_search_px): still seen
+    assert coast(_sky_with((117, 96))).reported
+    # a lighter object of the same shape is the same look (correlation, not grey levels)
+    assert coast(_sky_with((117, 96), grey=120)).reported
+    # the object is gone (flew behind something, or was never there): the prediction is empty sky
+    gone = coast(_sky_with(None))
+    assert gone.confidence >= 0.5 and not gone.in_sight and not gone.reported
+    # ... or the prediction is 40 px off the object, past the search
+    assert not coast(_sky_with((117, 96)), at=(161.0, 100.0)).reported
+    # the search would leave the frame: not reported
+    assert not coast(_sky_with((117, 96)), at=(2.0, 100.0)).reported
+    # coast_match 0: on the confidence alone, as before
+    assert coast(_sky_with(None), dataclasses.replace(cfg, coast_match=0.0)).reported
 
 
 def test_bottom_edge_feature_grows_while_the_ring_stays_across_the_bottom_edge() -> None:

@@ -37,8 +37,13 @@ core            the fraction of the last ``history_frames`` matched frames in wh
 
 and a confidence ``sigmoid(bias + sum(weight * feature))``. The weights are fitted by
 logistic regression (``midair fit-confidence``) and live in ``config.yaml``; a track is
-*reported* as an object in the frames its confidence reaches ``min_confidence``, coasting or
-not. With ``min_confidence: 0`` every matched confirmed track is reported (the paper).
+*reported* as an object in the frames its confidence reaches ``min_confidence``. A track that
+coasts on its prediction (no cluster matched this frame) is reported only while what it last
+looked like is still found there (``coast_match``: the grey patch of its newest matched box,
+searched for within ``coast_search_px`` of the prediction by normalised cross-correlation): a
+hovering drone that the frame difference stops seeing is still there; a prediction that ran on
+into empty sky or a tree after the object was lost is not. With ``min_confidence: 0`` every
+matched confirmed track is reported (the paper).
 
 The two ring-texture features say what the background is (plain sky or texture); fitted on
 the Halmstad clips, they make ground behind an object read as clutter. ``contrast`` and
@@ -80,6 +85,7 @@ class _Evidence:
     core: deque[bool]
     edge_run: int = field(default=0)  # newest matched frames in a row with the ring across the bottom edge
     seen: bool = field(default=False)  # updated in the current frame
+    look: np.ndarray | None = field(default=None)  # grey patch of the newest matched frame's box
 
 
 def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], contours: tuple[np.ndarray, ...],
@@ -121,6 +127,43 @@ def ring_texture(grey: np.ndarray, box: tuple[int, int, int, int], contours: tup
     if cv2.countNonZero(inside):
         contrast = abs(cv2.mean(crop, mask=inside)[0] - float(mean[0, 0])) / (float(std[0, 0]) + 1.0)
     return _percentile_of_root(squares, 75.0), float(std[0, 0]), contrast
+
+
+# the margin kept around a matched cluster's box in its look, px (a bit of what it stands against)
+LOOK_MARGIN_PX = 2
+
+
+def _patch(grey: np.ndarray, box: tuple[int, int, int, int], margin: int) -> np.ndarray | None:
+    """A copy of ``grey`` in ``box`` (x, y, w, h px) grown by ``margin``, clipped to the frame;
+    None when under 3 px a side."""
+    height, width = grey.shape
+    x, y, w, h = box
+    x0, y0 = max(0, int(x) - margin), max(0, int(y) - margin)
+    x1, y1 = min(width, int(x) + int(w) + margin), min(height, int(y) + int(h) + margin)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return None
+    return grey[y0:y1, x0:x1].copy()
+
+
+def still_there(grey: np.ndarray, box: tuple[float, float, float, float], look: np.ndarray,
+                search_px: int) -> float:
+    """How well ``look`` (a grey patch) is found within ``search_px`` of ``box``'s centre in
+    ``grey``: the best normalised cross-correlation (-1 to 1). 0 when the search would leave the
+    frame or the patch is flat (nothing to find by)."""
+    height, width = grey.shape
+    x, y, w, h = box
+    ph, pw = look.shape
+    x0 = int(round(x + w / 2 - pw / 2)) - search_px
+    y0 = int(round(y + h / 2 - ph / 2)) - search_px
+    x1, y1 = x0 + pw + 2 * search_px, y0 + ph + 2 * search_px
+    if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
+        return 0.0
+    _, sd = cv2.meanStdDev(look)
+    if float(sd[0, 0]) < 1.0:
+        return 0.0
+    scores = cv2.matchTemplate(grey[y0:y1, x0:x1], look, cv2.TM_CCOEFF_NORMED)
+    # a flat window of the search divides by ~0: not a match
+    return float(np.nan_to_num(scores, nan=0.0, posinf=0.0, neginf=0.0).max())
 
 
 def _percentile_of_root(squares: np.ndarray, q: float) -> float:
@@ -199,6 +242,8 @@ class TrackConfidence:
                     ev.std.append(tex[1])
                     ev.contrast.append(tex[2])
                 ev.core.append(t.core is not None)
+                if cfg.coast_match > 0:
+                    ev.look = _patch(grey, t.cluster.box, LOOK_MARGIN_PX)
             features = (
                 1.0 if t.matched else 0.0,
                 math.log1p(t.hits),
@@ -213,8 +258,11 @@ class TrackConfidence:
                 sum(ev.core) / len(ev.core) if ev.core else 0.0,
             )
             conf = logistic(cfg.bias, self.weights, features)
-            reported = conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched
-            out.append(t.scored(conf, features, reported))
+            in_sight = t.matched or cfg.coast_match <= 0 or (
+                ev.look is not None
+                and still_there(grey, t.box, ev.look, cfg.coast_search_px) >= cfg.coast_match)
+            reported = (conf >= cfg.min_confidence if cfg.min_confidence > 0 else t.matched) and in_sight
+            out.append(t.scored(conf, features, reported, in_sight))
         # a track that was not handed in is gone (deleted or reset): forget it
         for tid in [tid for tid, ev in self._evidence.items() if not ev.seen]:
             del self._evidence[tid]

@@ -69,19 +69,22 @@ class TrackReport:
     confidence: float = 1.0  # 0-1, from app.perception.confidence (1 until scored)
     features: tuple[float, ...] = ()  # what the confidence was computed from (app.perception.confidence)
     reported: bool = True  # counted as an object in this frame (tracks.csv, evaluation)
+    # matched, or coasting where its last matched look is still found (app.perception.confidence)
+    in_sight: bool = True
     # the matched cluster's contrast flux and its std (app.perception.photometry), grey x px²
     flux: tuple[float, float] | None = None
     # its core's area (pixels beyond half its contrast) and that's std, px² (photometry)
     core: tuple[float, float] | None = None
 
-    def scored(self, confidence: float, features: tuple[float, ...], reported: bool) -> TrackReport:
+    def scored(self, confidence: float, features: tuple[float, ...], reported: bool,
+               in_sight: bool = True) -> TrackReport:
         """This report with its confidence filled in (as ``dataclasses.replace``, which looks the
         fields up on every call: 5x the cost, once per track and frame)."""
         return TrackReport(
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
             matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
             trail=self.trail, confidence=confidence, features=features, reported=reported,
-            flux=self.flux, core=self.core,
+            flux=self.flux, core=self.core, in_sight=in_sight,
         )
 
     def with_photometry(self, flux: tuple[float, float] | None,
@@ -91,7 +94,7 @@ class TrackReport:
             track_id=self.track_id, x=self.x, y=self.y, vx=self.vx, vy=self.vy, box=self.box,
             matched=self.matched, last_seen_s=self.last_seen_s, hits=self.hits, cluster=self.cluster,
             trail=self.trail, confidence=self.confidence, features=self.features,
-            reported=self.reported, flux=flux, core=core,
+            reported=self.reported, flux=flux, core=core, in_sight=self.in_sight,
         )
 
 

@@ -39,6 +39,7 @@ class ClipExamples:
     boxes: np.ndarray  # (n, 4) float: x, y, w, h px
     x: np.ndarray  # (n, len(FEATURES)) float
     y: np.ndarray  # (n,) bool: centre within the gate of a labelled object
+    in_sight: np.ndarray | None = None  # (n,) bool: TrackReport.in_sight (None: every row)
 
 
 def collect(clip: Clip, cfg: Config) -> ClipExamples:
@@ -49,7 +50,7 @@ def collect(clip: Clip, cfg: Config) -> ClipExamples:
     gt = read_boxes(clip.gt)
     source = open_source(clip.video)
     p = Perception(cfg.perception)
-    keys, boxes, xs, ys = [], [], [], []
+    keys, boxes, xs, ys, sight = [], [], [], [], []
     for frame in source:
         r = p.push(frame)
         if r is None:
@@ -64,11 +65,12 @@ def collect(clip: Clip, cfg: Config) -> ClipExamples:
             boxes.append(t.box)
             xs.append(t.features)
             ys.append(hit)
+            sight.append(t.in_sight)
     n = len(keys)
     return ClipExamples(
         clip, len(source), gt,
         np.array(keys, int).reshape(n, 2), np.array(boxes, float).reshape(n, 4),
-        np.array(xs, float).reshape(n, len(FEATURES)), np.array(ys, bool),
+        np.array(xs, float).reshape(n, len(FEATURES)), np.array(ys, bool), np.array(sight, bool),
     )
 
 
@@ -132,11 +134,14 @@ def confidence(bias: float, w: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def score_clip(ex: ClipExamples, conf: np.ndarray, min_confidence: float) -> dict[str, float]:
     """The evaluation's counts for ``ex`` reporting the rows whose confidence reaches the
-    threshold (0: the matched rows, as ``min_confidence: 0`` does at run time)."""
+    threshold (0: the matched rows, as ``min_confidence: 0`` does at run time), and coasting
+    only where its look was still found (``coast_match``, as at run time)."""
     if min_confidence > 0:
         keep = conf >= min_confidence
     else:
         keep = ex.x[:, FEATURES.index("matched")] > 0.5
+    if ex.in_sight is not None:
+        keep = keep & ex.in_sight
     rows = [(int(f), int(i), *map(float, b), float(c))
             for (f, i), b, c in zip(ex.keys[keep], ex.boxes[keep], conf[keep], strict=True)]
     return score(ex.gt, rows, ex.frames, ex.clip.cuts)  # type: ignore[arg-type]
