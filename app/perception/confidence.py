@@ -135,21 +135,23 @@ LOOK_MARGIN_PX = 2
 
 def _patch(grey: np.ndarray, box: tuple[int, int, int, int], margin: int) -> np.ndarray | None:
     """A copy of ``grey`` in ``box`` (x, y, w, h px) grown by ``margin``, clipped to the frame;
-    None when under 3 px a side."""
+    None when under 3 px a side or flat (grey std under 1: nothing to find it by)."""
     height, width = grey.shape
     x, y, w, h = box
     x0, y0 = max(0, int(x) - margin), max(0, int(y) - margin)
     x1, y1 = min(width, int(x) + int(w) + margin), min(height, int(y) + int(h) + margin)
     if x1 - x0 < 3 or y1 - y0 < 3:
         return None
-    return grey[y0:y1, x0:x1].copy()
+    patch = grey[y0:y1, x0:x1]
+    _, sd = cv2.meanStdDev(patch)
+    return patch.copy() if float(sd[0, 0]) >= 1.0 else None
 
 
 def still_there(grey: np.ndarray, box: tuple[float, float, float, float], look: np.ndarray,
                 search_px: int) -> float:
-    """How well ``look`` (a grey patch) is found within ``search_px`` of ``box``'s centre in
-    ``grey``: the best normalised cross-correlation (-1 to 1). 0 when the search would leave the
-    frame or the patch is flat (nothing to find by)."""
+    """How well ``look`` (a grey patch, not flat: :func:`_patch`) is found within ``search_px``
+    of ``box``'s centre in ``grey``: the best normalised cross-correlation (-1 to 1). 0 when the
+    search would leave the frame."""
     height, width = grey.shape
     x, y, w, h = box
     ph, pw = look.shape
@@ -157,9 +159,6 @@ def still_there(grey: np.ndarray, box: tuple[float, float, float, float], look: 
     y0 = int(round(y + h / 2 - ph / 2)) - search_px
     x1, y1 = x0 + pw + 2 * search_px, y0 + ph + 2 * search_px
     if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-        return 0.0
-    _, sd = cv2.meanStdDev(look)
-    if float(sd[0, 0]) < 1.0:
         return 0.0
     scores = cv2.matchTemplate(grey[y0:y1, x0:x1], look, cv2.TM_CCOEFF_NORMED)
     # a flat window of the search divides by ~0: not a match
