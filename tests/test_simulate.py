@@ -189,6 +189,42 @@ def test_depth_reaches_as_far_as_a_frame_holds_with_the_error_it_has_there() -> 
     assert patch[patch > 0].min() > 40.0  # 3 disparity errors nearer: 46 m
 
 
+def test_the_stereo_world_fails_to_match_where_a_d435i_does() -> None:
+    """``app.sim.world:stereo``: a uniform ball has depth on its rim only, the rim spread
+    a few px over the sky behind it; the leftmost B·f/z columns have none; and what remains
+    is still the true distance, but for a few wrong matches."""
+    from app.sim.world import STEREO_HOLE_SHARE, d435i_infrared, stereo
+
+    lens = d435i_infrared(848, 480)
+    plain = World(WorldStyle(seed=3), intrinsics=lens)
+    world = stereo(3, lens)
+    ball = [Sphere(1, (6.0, 0.0, -6.6), 0.6, 40)]  # above the horizon: sky behind it
+    _c, exact, seen = plain.render((0.0, 0.0, -6.0), 0.0, ball)
+    _c, depth, _ = world.render((0.0, 0.0, -6.0), 0.0, ball)
+    u, v, r, z = seen[1]
+    yy, xx = np.mgrid[0:480, 0:848]
+    dist = np.hypot(xx - u, yy - v)
+    inside, rim, halo = dist < r - 4, (dist > r - 2) & (dist < r), (dist > r + 1) & (dist < r + 2.5)
+    assert (exact[inside] > 0).all() and (depth[inside] == 0).mean() > 0.9  # no texture inside
+    assert (depth[rim] > 0).mean() > 0.6 and (exact[halo] == 0).all()
+    assert (depth[halo] > 0).mean() > 0.6  # the ball's depth spread over the sky
+    measured = depth[rim | halo].astype(float) / 1000
+    assert np.median(measured[measured > 0]) == pytest.approx(z, rel=0.05)
+    # ground 1.5 m below, 2.8-4.2 m ahead in the bottom rows: their leftmost 0.05 x 447 / z
+    # = 5-8 columns have no depth (the right imager does not see them)
+    plain_low = World(WorldStyle(seed=3, trees=0), intrinsics=lens)
+    fails_low = World(WorldStyle(seed=3, trees=0, stereo_failures=True), intrinsics=lens)
+    rows = slice(400, 480)
+    _c, d_plain, _ = plain_low.render((0.0, 0.0, -1.5), 0.0, [])
+    _c, d_fail, _ = fails_low.render((0.0, 0.0, -1.5), 0.0, [])
+    assert (d_plain[rows, :4] > 0).all() and (d_fail[rows, :4] == 0).all()
+    assert (d_fail[rows, 20:] > 0).mean() > 0.3
+    # 8 m up, the ground's texture matches but for the holes
+    _c, d_fail, _ = fails_low.render((0.0, 0.0, -8.0), 0.0, [])
+    valid = (d_fail[rows, 20:] > 0).mean()
+    assert 1 - 3 * STEREO_HOLE_SHARE < valid < 1 - STEREO_HOLE_SHARE / 2
+
+
 def test_camera_noise_is_the_float_sum_pixel_for_pixel() -> None:
     """The world adds its noise in integers (saturating), with the float sum only where a
     fraction within 2^-12 of 1 may round up: the same pixels as clip(grey + noise) in float32,

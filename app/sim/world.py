@@ -80,10 +80,28 @@ class WorldStyle:
     flap_hz: float = 4.0  # wing beats per second (a pigeon flaps at ~5 Hz, gulls ~3 Hz)
     fps: float = 30.0  # frames per second the flapping and drift are timed by
     cloud_drift_px: float = 0.0
+    # Opt-in (the `stereo` world): depth with a D435i's failures of stereo matching, as well
+    # as its noise: no depth where the scene has no texture to match (uniform objects' and
+    # slabs' insides), the nearer side of a depth edge spread over the farther, scattered
+    # holes, a few wrong matches, and the left band only the left imager sees (see
+    # World._stereo_failures). Off, depth is exact but for its noise.
+    stereo_failures: bool = False
 
 
 D435I_BASELINE_M = 0.050  # stereo baseline of the D435/D435i (Intel D400 datasheet)
 D435I_DEPTH_FX_PX = 447.0  # depth focal length at 848x480: 424 px / tan(87°/2)
+# The `stereo` world's matching failures (World._stereo_failures). A model, not a measurement
+# of the D4 processor (whose census window and texture thresholds are not published as
+# numbers): a window of 7 px; no match where the noise-free grey varies by under 0.5 levels
+# over it (a uniform surface: this world's objects and tree slabs; its near ground, smoother
+# than real ground, varies by ~1 level over a window and keeps its depth); an edge where the
+# depth jumps by 10 %; 5 % of the pixels in holes, 0.2 % wrong by up to 8 px of disparity
+STEREO_WINDOW_PX = 7
+STEREO_TEXTURE_MIN = 0.5
+STEREO_EDGE_JUMP = 0.10
+STEREO_HOLE_SHARE = 0.05
+STEREO_OUTLIER_SHARE = 0.002
+STEREO_OUTLIER_PX = 8.0
 
 
 @dataclass
@@ -130,6 +148,13 @@ class World:
         field = cv2.GaussianBlur(rng.normal(0, 1, (intr.height + 64, intr.width + 64)), (0, 0), 2.0)
         self._disparity_noise = self.style.depth_subpixel * (field / field.std()).astype(np.float32)  # px
         self._depth_rng = np.random.default_rng(self.style.seed + 1)
+        if s.stereo_failures:  # clumps of a few px, and single wrong matches
+            shape = (intr.height + 64, intr.width + 64)
+            clumps = cv2.GaussianBlur(rng.random(shape, dtype=np.float32), (0, 0), 1.5)
+            self._holes = clumps > np.quantile(clumps, 1.0 - STEREO_HOLE_SHARE)
+            wrong = rng.random(shape) < STEREO_OUTLIER_SHARE
+            self._outliers = np.where(wrong, rng.uniform(-STEREO_OUTLIER_PX, STEREO_OUTLIER_PX, shape), 0.0
+                                      ).astype(np.float32)
 
     def _ground_rows(self, texel_to_px: np.ndarray, w: int, rows: int) -> np.ndarray:
         """The tiled ground texture seen through ``texel_to_px`` (texel -> output px), ``rows``
@@ -253,6 +278,8 @@ class World:
                 depth_top = min(depth_top, y0)
             seen[sp.object_id] = (float(u), float(vv), float(r), float(p[2]))
 
+        if self.style.stereo_failures:
+            self._stereo_failures(grey, depth, depth_top)
         colour = cv2.cvtColor(self._add_noise(grey, self._k % len(self.noise)), cv2.COLOR_GRAY2BGR)
         self._k += 1
         # rows above `depth_top` hold no depth (sky): they come back 0 as they are; the rest
@@ -277,6 +304,54 @@ class World:
         with np.errstate(invalid="ignore"):  # what is out of range (inf, nan) is not kept
             cv2.copyTo(band.astype(np.uint16), kept, out[depth_top:])
         return colour, out, seen
+
+    def _stereo_failures(self, grey: np.ndarray, depth: np.ndarray, top: int) -> None:
+        """Puts into ``depth`` (m, 0 = none, rows from ``top``) what stereo matching does to
+        it, from the noise-free ``grey`` (the pair's image noise is not texture: it differs
+        between the two imagers):
+
+        - **no texture, no match**: no depth where the grey varies by under
+          ``STEREO_TEXTURE_MIN`` (standard deviation) over a matching window of
+          ``STEREO_WINDOW_PX``: a uniform ball's or tree slab's inside; its rim keeps depth;
+        - **edges fattened**: within half a window of a depth edge, the nearer side's depth
+          spreads over the farther (the window is matched on the nearer surface's texture);
+        - **holes**: ``STEREO_HOLE_SHARE`` of the pixels, in clumps of a few px, have none;
+        - **wrong matches**: ``STEREO_OUTLIER_SHARE`` of the pixels take a disparity off by up
+          to ``STEREO_OUTLIER_PX`` either way (some come out much nearer);
+        - **the left band**: no depth in the leftmost B·f/z columns, which the right imager
+          does not see (Intel RealSense D400 datasheet, "invalid depth band": B·F/Z px).
+        """
+        h, w = depth.shape
+        band = depth[top:]
+        if band.size == 0:
+            return
+        g = grey[top:].astype(np.float32)
+        win = (STEREO_WINDOW_PX, STEREO_WINDOW_PX)
+        mean = cv2.blur(g, win)
+        var = cv2.blur(g * g, win) - mean * mean
+        flat = var < STEREO_TEXTURE_MIN ** 2
+        # the nearer side spreads over the farther by half a window from an edge (a jump between
+        # neighbours, not the slope of the ground): a min filter there (no depth is infinitely far)
+        far = np.where(band > 0, band, np.float32(np.inf)).astype(np.float32)
+        edge = (cv2.erode(far, np.ones((3, 3), np.uint8)) < far * (1.0 - STEREO_EDGE_JUMP)).view(np.uint8)
+        reach = np.ones((STEREO_WINDOW_PX, STEREO_WINDOW_PX), np.uint8)
+        near = cv2.erode(far, reach)
+        spread = cv2.dilate(edge, reach).view(bool) & (near < far)
+        band[spread] = near[spread]
+        band[flat & ~spread] = 0.0
+        # holes and wrong matches: a random window of fields made once (as the noise above)
+        dy, dx = self._depth_rng.integers(0, 64, 2)
+        rows = slice(dy + top, dy + h)
+        band[self._holes[rows, dx:dx + w]] = 0.0
+        off = self._outliers[rows, dx:dx + w]
+        vs, us = np.nonzero((off != 0) & (band > 0))
+        fb = D435I_DEPTH_FX_PX * D435I_BASELINE_M  # disparities in the depth stream's px
+        disparity = fb / band[vs, us] + off[vs, us]
+        band[vs, us] = np.where(disparity > 0, fb / np.maximum(disparity, 1e-6), 0.0)
+        # the left band, in this lens's columns
+        with np.errstate(divide="ignore"):
+            unseen_px = D435I_BASELINE_M * self.intrinsics.fx / np.where(band > 0, band, np.inf)
+        band[np.arange(w, dtype=np.float32)[None, :] < unseen_px] = 0.0
 
     def _add_noise(self, grey: np.ndarray, i: int) -> np.ndarray:
         """``grey`` plus noise frame ``i``, clipped to 0..255 and truncated: what float32
@@ -382,6 +457,13 @@ def shaped(seed: int, lens: Intrinsics) -> World:
     """The built-in world with birds and quadrotors drawn as such (not discs) and clouds that
     drift (``--world app.sim.world:shaped``): perception not tuned to balls against a still sky."""
     return World(WorldStyle(seed=seed, shapes=True, cloud_drift_px=0.4), intrinsics=lens)
+
+
+def stereo(seed: int, lens: Intrinsics) -> World:
+    """The built-in world whose depth fails as stereo matching does (``--world
+    app.sim.world:stereo``): no depth inside uniform objects and slabs, fattened edges, holes,
+    a few wrong matches and the left invalid band (:meth:`World._stereo_failures`)."""
+    return World(WorldStyle(seed=seed, stereo_failures=True), intrinsics=lens)
 
 
 def _periodic_blur(noise: np.ndarray, sigma: float, rows_too: bool = True) -> np.ndarray:
