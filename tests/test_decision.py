@@ -85,6 +85,32 @@ def test_no_depth_pixels_mean_no_distance() -> None:
     assert cmd.action == NONE and objects == []
 
 
+def test_scattered_wrong_matches_are_no_distance_but_a_small_surface_is() -> None:
+    """A blob over ground 30-60 m off (past the trusted range) holding 8 of a stereo camera's
+    wrong matches, 3-9.5 m off each on its own: no surface agrees with them, so no distance
+    (their 25th percentile read 3.6 m, a near object closing at the vehicle's speed: the
+    `stereo` world, object-free). Six depths of one surface at 3.5 m in the same blob are one."""
+    cl = Cluster(320.0, 240.0, (200, 230, 240, 40), 9600, (np.array([[[200, 230]], [[439, 230]],
+                                                                    [[439, 269]], [[200, 269]]]),))
+    rng = np.random.default_rng(3)
+    depth = rng.integers(30_000, 60_000, (480, 640)).astype(np.uint16)
+
+    def put(u: float, v: float, z: float) -> None:  # a depth at colour pixel (u, v), via the calibration
+        p = CAM.color.deproject(np.array([u]), np.array([v]), np.array([z])) - CAM.translation_m
+        du, dv = np.round(CAM.depth.project(p)[0]).astype(int)
+        depth[dv, du] = int(z * 1000)
+
+    spots = [(210, 235), (260, 262), (300, 240), (330, 250), (360, 233), (380, 266), (420, 245), (230, 255)]
+    for (u, v), z in zip(spots, (3.16, 3.47, 3.67, 3.69, 4.48, 6.6, 9.16, 9.47), strict=True):
+        put(u, v, z)
+    assert object_depth(cl, depth, CAM, 0.2, 16.0, 25, 6, CFG.depth_rms_per_m2) is None
+    for du in range(4):  # a small surface 3.5 m off: 8 depth pixels of it
+        for dv in range(2):
+            put(300 + 1.6 * du, 250 + 1.6 * dv, 3.5)
+    found = object_depth(cl, depth, CAM, 0.2, 16.0, 25, 6, CFG.depth_rms_per_m2)
+    assert found is not None and found.z_m == pytest.approx(3.5, abs=0.2)
+
+
 def test_depth_is_read_on_the_blob_through_the_calibration() -> None:
     """A 2 m object seen by a depth camera 15 mm to the left of the colour camera, with
     another focal length: the lookup must find its depth pixels, not the 6 m wall."""

@@ -77,6 +77,30 @@ def test_an_object_nearer_than_the_ground_behind_it_is_marked(z_m: float, radius
     assert marked[~near_it].sum() <= 0.001 * np.count_nonzero(depth)
 
 
+def test_single_wrong_matches_are_not_marked_but_a_small_object_is() -> None:
+    """Stereo's wrong matches: 0.2 % of the ground's pixels (far ground, 6 m up) take a
+    disparity up to 8 px off, many of them metres nearer than the ground around them. Alone
+    they mark nothing (a blob of them read a cluster over far ground 2.9 m off: the `stereo`
+    world); a 0.2 m ball 12 m off, 3 px across at half resolution, still is."""
+    rng = np.random.default_rng(5)
+    depth = ground_depth(6.0)
+    ys, xs = np.nonzero(depth)
+    pick = rng.random(len(ys)) < 0.002
+    ys, xs = ys[pick], xs[pick]
+    fb = F * 0.05  # the depth lens's focal length x the D435i's baseline, px m
+    disparity = fb / (depth[ys, xs] / 1000.0) + rng.uniform(-8.0, 8.0, len(ys))
+    good = disparity > fb / 65.0
+    depth[ys[good], xs[good]] = np.round(1000.0 * fb / disparity[good]).astype(np.uint16)
+    before = ground_depth(6.0)[ys[good], xs[good]] / 1000.0
+    nearer = 1.0 / (depth[ys[good], xs[good]] / 1000.0) - 1.0 / before
+    assert (nearer > 5 * NOISE * 4).sum() > 100  # plenty that stand far out, each alone
+    assert mask_of(depth).sum() <= 0.0001 * np.count_nonzero(depth)  # (148 px marked alone)
+    u, v = 300.0, 330.0
+    ball = disc(depth, u, v, 3.5, 12.0)
+    vv, uu = np.mgrid[0:H, 0:W]
+    assert mask_of(ball)[(uu - u) ** 2 + (vv - v) ** 2 <= 3.5**2].mean() > 0.5
+
+
 def test_an_object_against_the_empty_sky_marks_nothing() -> None:
     """Depth holds nothing around it (the sky): no background to stand out from; the grey
     difference sees objects there."""
