@@ -93,7 +93,7 @@ def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: flo
     # evaded). An object worth a range covers several: 4 px of the frame are 2 here.
     beside = cv2.boxFilter(cv2.convertScaleAbs(small, alpha=1.0 / 255.0), -1, (3, 3), normalize=False,
                            borderType=cv2.BORDER_CONSTANT)
-    small = np.where(beside >= 2, small, np.uint8(0)).astype(np.uint8)
+    small[beside < 2] = 0
     out = np.zeros((h, w), np.uint8)
     x, y, bw, bh = cv2.boundingRect(small)  # mostly nothing is marked: only that box is scaled up
     if bw and bh:
