@@ -429,6 +429,12 @@ class DecisionConfig:
         25.0, "percentile of the blob's depth pixels taken as its distance", ge=0, le=100
     )
     min_depth_pixels: int = param(6, "fewer trusted depth pixels on the blob: no distance", ge=1)
+    min_depth_cover: float = param(
+        0.25, "a near surface holding fewer depth pixels than this share of a disc "
+        "object_diameter_min_m across at its distance gives no distance: no object is that small "
+        "there, but a clump of the stereo matcher's wrong matches is (real objects held >= 0.96 "
+        "of it in the open loop, seed 11, `stereo` world; clumps 0.01-0.2); 0 = off", ge=0, le=1,
+    )
     min_track_confidence: float = param(
         0.0, "tracks below this perception confidence are not measured in depth (0-1; 0 = "
         "every confirmed track: depth itself tells a closing object from clutter)", ge=0, lt=1,

@@ -427,7 +427,7 @@ class DecisionMaker:
                     and t.confidence >= c.min_track_confidence):
                 meas = object_depth(t.cluster, depth, self.camera, c.min_range_m, c.max_range_m,
                                     c.depth_percentile, c.min_depth_pixels, c.depth_rms_per_m2,
-                                    c.object_diameter_max_m)
+                                    c.object_diameter_max_m, c.object_diameter_min_m, c.min_depth_cover)
             tr = self._tracks.get(t.track_id)
             if meas is not None and all(math.isfinite(v) for v in meas.xyz_m):
                 if tr is None:
