@@ -112,6 +112,11 @@ class DetectionConfig:
         "D400 RMS error 0.0036 z^2 m is 0.0036 /m in 1/z)",
         gt=0, le=1.0,
     )
+    near_min_size_m: float = param(
+        0.15, "the depth path's smallest object: a marked patch holding under a quarter of a disc "
+        "this wide at its distance is dropped (a clump of the stereo matcher's wrong matches), m "
+        "(0 = none dropped; at most decision.object_diameter_min_m)", ge=0, le=5.0,
+    )
     near_window_px: int = param(80, "the depth path's row window: the background of a pixel is the "
                                 "valid depth within this many px on its row, px", ge=8, le=1000)
     chroma_gain: float = param(
@@ -818,6 +823,10 @@ def check_consistency(cfg: Config) -> None:
     if dc.object_diameter_min_m > dc.object_diameter_max_m:
         raise ConfigError(f"decision.object_diameter_min_m = {dc.object_diameter_min_m:g}: must be "
                           f"<= object_diameter_max_m ({dc.object_diameter_max_m:g})")
+    if d.near_min_size_m > dc.object_diameter_min_m:
+        raise ConfigError(f"perception.detection.near_min_size_m = {d.near_min_size_m:g}: must be <= "
+                          f"decision.object_diameter_min_m ({dc.object_diameter_min_m:g}): the depth "
+                          "path would drop objects the decision takes as plausible")
     if dc.evade_speed_mps > dc.max_speed_mps:
         raise ConfigError(f"decision.evade_speed_mps = {dc.evade_speed_mps:g}: must be <= "
                           f"max_speed_mps ({dc.max_speed_mps:g})")

@@ -57,6 +57,7 @@ class Perception:
         # registered to the image and in what units
         self.camera = camera
         self._near: bool | None = None  # decided on the first frame with depth
+        self._near_floor_px = 0.0  # the depth path's smallest patch 1 m off (near.patch_floor_px), px
         self.detector = MotionDetector(cfg.detection, full_frame=full_frame_features)
         self.recognizer = Recognizer(cfg.recognition)
         self.tracker = Tracker(cfg.tracking)
@@ -119,6 +120,9 @@ class Perception:
         registered to the image; ``mask`` itself otherwise."""
         if self._near is None:
             self._near = near.registered(self.camera, mask.shape[:2])
+            if self.camera is not None:
+                lens = self.camera.depth
+                self._near_floor_px = near.patch_floor_px(lens.fx, lens.fy, self.cfg.detection.near_min_size_m)
             if not self._near:
                 _say_near_off()
         if not self._near or depth.shape != mask.shape:
@@ -126,5 +130,5 @@ class Perception:
         assert self.camera is not None
         d = self.cfg.detection
         marked = near.near_mask(depth, self.camera.depth_scale_m, d.near_sigmas, d.near_noise_per_m,
-                                d.near_window_px, near.MIN_M, near.MAX_M)
+                                d.near_window_px, near.MIN_M, near.MAX_M, self._near_floor_px)
         return cv2.bitwise_or(mask, marked)

@@ -22,6 +22,7 @@ from app.perception import near
 from app.perception.frames import Frame
 from app.perception.pipeline import Perception, PerceptionResult
 from app.sim.synthetic import SyntheticScene, render
+from app.sim.world import D435I_DEPTH_FX_PX
 
 STAGES = ("detection_ms", "recognition_ms", "tracking_ms", "total_ms")
 # The variants take turns every this many frames (about 0.1 + 0.3 s here): the development VM's
@@ -167,9 +168,12 @@ def run_bench(cfg: Config, frames: int = 300, repeats: int = 5, seed: int = 1,
 def time_near(frames: list[Frame], cfg: Config, repeats: int = 3) -> np.ndarray:
     """The depth path's time per frame (app.perception.near, ms) on the clip's depth: it runs
     only where depth is registered to the image (the infrared imager), so it is not in the
-    stages' figures; timed at ``near_sigmas`` 5 when the configuration has it off."""
+    stages' figures; timed at ``near_sigmas`` 5 when the configuration has it off, with the
+    D435i's depth lens at the clip's width for its patch floor."""
     d = cfg.perception.detection
     sigmas = d.near_sigmas or 5.0
+    fx = D435I_DEPTH_FX_PX * frames[0].color.shape[1] / 848.0 if frames else D435I_DEPTH_FX_PX
+    floor = near.patch_floor_px(fx, fx, d.near_min_size_m)
     times = []
     for _ in range(repeats):
         for f in frames:
@@ -177,7 +181,7 @@ def time_near(frames: list[Frame], cfg: Config, repeats: int = 3) -> np.ndarray:
                 continue
             t0 = time.perf_counter()
             near.near_mask(f.depth, 0.001, sigmas, d.near_noise_per_m, d.near_window_px,
-                           near.MIN_M, near.MAX_M)
+                           near.MIN_M, near.MAX_M, floor)
             times.append((time.perf_counter() - t0) * 1e3)
     return np.array(times) if times else np.array([math.nan])
 
