@@ -121,8 +121,8 @@ class Perception:
         if self._near is None:
             self._near = near.registered(self.camera, mask.shape[:2])
             if self.camera is not None:
-                lens = self.camera.depth
-                self._near_floor_px = near.patch_floor_px(lens.fx, lens.fy, self.cfg.detection.near_min_size_m)
+                lens, size = self.camera.depth, self.cfg.detection.near_min_size_m
+                self._near_floor_px = near.patch_floor_px(lens.fx, lens.fy, size)
             if not self._near:
                 _say_near_off()
         if not self._near or depth.shape != mask.shape:
