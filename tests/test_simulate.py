@@ -225,6 +225,33 @@ def test_the_stereo_world_fails_to_match_where_a_d435i_does() -> None:
     assert 1 - 3 * STEREO_HOLE_SHARE < valid < 1 - STEREO_HOLE_SHARE / 2
 
 
+def test_the_stereo_clumps_world_makes_its_wrong_matches_nine_at_a_time() -> None:
+    """``app.sim.world:stereo_clumps``: the wrong matches of `stereo`, each over a 3 x 3
+    square at one depth: over ground 3 m below, several times as many pixels far off the
+    true depth, most of them beside another, where `stereo`'s stand alone."""
+    import cv2
+
+    from app.sim.world import d435i_infrared, stereo, stereo_clumps
+
+    lens = d435i_infrared(848, 480)
+    _c, exact, _ = World(WorldStyle(seed=3), intrinsics=lens).render((0.0, 0.0, -3.0), 0.0, [])
+
+    def wrong(world: World) -> np.ndarray:
+        _c, d, _ = world.render((0.0, 0.0, -3.0), 0.0, [])
+        both = (d > 0) & (exact > 0) & (exact < 15_000)  # (ground within 15 m: its noise is small)
+        off = np.abs(d.astype(float) - exact) > 0.25 * exact
+        return (both & off).astype(np.uint8)
+
+    single, clumped = wrong(stereo(3, lens)), wrong(stereo_clumps(3, lens))
+
+    def beside(w: np.ndarray) -> float:  # the share of wrong pixels with a wrong neighbour
+        n = cv2.filter2D(w, -1, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT)
+        return float((n[w > 0] >= 2).mean())
+
+    assert clumped.sum() > 4 * single.sum() > 0
+    assert beside(clumped) > 0.8 and beside(single) < 0.2
+
+
 def test_camera_noise_is_the_float_sum_pixel_for_pixel() -> None:
     """The world adds its noise in integers (saturating), with the float sum only where a
     fraction within 2^-12 of 1 may round up: the same pixels as clip(grey + noise) in float32,
