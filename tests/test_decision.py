@@ -517,17 +517,23 @@ def _depth_only_start(ranges: list[float | None], reported: bool) -> float | Non
     return None
 
 
-def test_an_unreported_depth_track_must_be_measured_in_most_of_its_frames() -> None:
-    """Perception calls it clutter and the image gives no time to contact: depth alone must
-    find it frame after frame. A track following wrong matches read 15.2 and 14.9 m, nothing
-    for 10 frames, then 9.2 and 8.9 m, 'closing' at 13 m/s (the `stereo_clumps` world: the
-    tree behind them stood 46 m off): no evasion, though a reported object measured so is
-    evaded; an unreported one closing at 12 m/s from 10 m, with the D435i's noise and a
-    range missing in one frame of four, still is within 0.3 s."""
+def test_depth_speaks_for_an_object_only_where_it_finds_it_in_most_looks(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A track following wrong matches: its blob read in depth every frame, measured at 15.2
+    and 14.9 m, then nothing for 10 frames, then 9.2 and 8.9 m, 'closing' at 13 m/s (the
+    `stereo_clumps` world: the tree behind them stood 46 m off). Measured in under half its
+    looks, its depth does not speak for it, reported or not: no evasion (with the share
+    at 0, it is evaded). One truly closing at 12 m/s from 10 m, with the D435i's noise and a
+    range missing in one frame of four, still is, within 0.3 s, unreported."""
+    import app.decision.policy as policy
+
     jumpy: list[float | None] = [15.2, None, None, None, 14.9] + [None] * 10 + [9.2, None, None, None, 8.9]
     jumpy += [None] * 10
     assert _depth_only_start(jumpy, reported=False) is None
-    assert _depth_only_start(jumpy, reported=True) is not None
+    assert _depth_only_start(jumpy, reported=True) is None
+    monkeypatch.setattr(policy, "MIN_MEASURED_SHARE", 0.0)
+    assert _depth_only_start(jumpy, reported=False) is not None
+    monkeypatch.undo()
     rng = np.random.default_rng(4)
     for _ in range(10):
         zs = 10.0 - 12.0 * np.arange(60) / 30

@@ -70,10 +70,11 @@ IMAGE_CONFIRM_FRAMES, FUSED_CONFIRM_FRAMES = 3, 2
 RANGE_RATE_WINDOW_S = 0.5
 # ... whose standard error is at most this share of the image's closing speed
 RANGE_RATE_MAX_REL_STD = 0.5
-# A depth track that perception does not report, with no time to contact from the image, acts
-# only when measured in at least this share of its frames over RANGE_RATE_WINDOW_S: a real
-# surface within range returns depth frame after frame; a track that follows a stereo camera's
-# wrong matches finds some at its place now and then, each at another distance
+# An object's depth track speaks for it only while it was measured in at least this share of
+# the frames over RANGE_RATE_WINDOW_S in which its blob was matched and read in depth (else the
+# object is seen in the image only): a real surface within range returns depth frame after
+# frame; a track that follows a stereo camera's wrong matches finds some on its blob now and
+# then, each at another distance
 MIN_MEASURED_SHARE = 0.5
 CLOSING_SIGMAS = 3.0  # image and depth closing speeds further apart than this: the image's is not used
 # the image's passage and the depth track's further apart than this many of their combined
@@ -147,9 +148,6 @@ class ObjectState:
     # whatever the 3-D track was started from) and its standard error, m/s; None: too few
     range_rate_mps: float | None = None
     range_rate_std_mps: float | None = None
-    # the share of the newest RANGE_RATE_WINDOW_S's frames in which depth measured it; None: not
-    # a depth track
-    measured_share: float | None = None
     # seen in the image only: the depth of what its blob shows (its near surface, as
     # object_depth takes it, at any range the camera returns), m
     surface_m: float | None = None
@@ -252,7 +250,7 @@ class _Track3D:
         self.t_s = t_s
         self.measured_s = t_s
         self.ranges: deque[tuple[float, float]] = deque([(t_s, xyz[2])])  # (t s, Z m), measured
-        self.frames: deque[float] = deque([t_s])  # the times of the frames it was in, s
+        self.looks: deque[float] = deque([t_s])  # when its blob was read in depth, s
         self.rejected = 0  # measurements in a row beyond the gate
 
     def advance(self, t_s: float) -> None:
@@ -265,9 +263,13 @@ class _Track3D:
                                            block_size=3)
         self.kf.predict()
         self.t_s = t_s
-        self.frames.append(t_s)
-        while self.frames[0] < t_s - RANGE_RATE_WINDOW_S:
-            self.frames.popleft()
+
+    def looked(self, t_s: float) -> None:
+        """Its blob was read in depth at ``t_s`` (measured or not)."""
+        if self.looks[-1] != t_s:
+            self.looks.append(t_s)
+        while self.looks[0] < t_s - RANGE_RATE_WINDOW_S:
+            self.looks.popleft()
 
     def measurement_cov(self, xyz: tuple[float, float, float]) -> np.ndarray:
         """Covariance of one depth measurement (X, Y, Z) = Z·(b_x, b_y, 1), m²: stereo errs in
@@ -343,14 +345,17 @@ class _Track3D:
             crossing_std = max(math.sqrt(float(p[i, i]) + ttc**2 * float(p[i + 1, i + 1])
                                          + (float(x[i + 1]) * tau_std) ** 2) for i in (0, 2))
         rate = self.range_rate()
-        recent = sum(1 for t, _ in self.ranges if t >= self.frames[0])
         return ObjectState(track_id, (float(x[0]), float(x[2]), z), self.measured_s,
                            t_s - self.measured_s <= self.cfg.max_depth_age_s, closing, ttc, crossing,
                            tau_s=ttc, tau_std_s=tau_std, seen_s=self.measured_s,
                            crossing_std_m=crossing_std, closing_std_mps=math.sqrt(float(self.kf.P[5, 5])),
                            range_rate_mps=rate[0] if rate else None,
-                           range_rate_std_mps=rate[1] if rate else None,
-                           measured_share=recent / len(self.frames))
+                           range_rate_std_mps=rate[1] if rate else None)
+
+    def measured_share(self) -> float:
+        """Of the looks at its blob in depth over the newest ``RANGE_RATE_WINDOW_S``, the share
+        that measured it."""
+        return min(1.0, sum(1 for t, _ in self.ranges if t >= self.looks[0]) / len(self.looks))
 
 
 class DecisionMaker:
@@ -437,8 +442,10 @@ class DecisionMaker:
                 self._seen[t.track_id] = t_s
         for t in tracks:
             meas = None
-            if (depth is not None and t.matched and t.cluster is not None
-                    and t.confidence >= c.min_track_confidence):
+            read = (depth is not None and t.matched and t.cluster is not None
+                    and t.confidence >= c.min_track_confidence)
+            if read:
+                assert t.cluster is not None and depth is not None
                 meas = object_depth(t.cluster, depth, self.camera, c.min_range_m, c.max_range_m,
                                     c.depth_percentile, c.min_depth_pixels, c.depth_rms_per_m2,
                                     c.object_diameter_max_m, c.object_diameter_min_m, c.min_depth_cover)
@@ -451,14 +458,18 @@ class DecisionMaker:
                     if not tr.update(meas.xyz_m, t_s) and tr.rejected >= GATE_RESTART:
                         # the track follows something else now: start again from here
                         self._tracks[t.track_id] = _Track3D(meas.xyz_m, t_s, c, image_of(t.track_id))
+                    else:
+                        tr.looked(t_s)
             elif tr is not None:
                 tr.advance(t_s)
+                if read:
+                    tr.looked(t_s)
         out = []
         engaged = self._engaged.object_id if self._engaged is not None else None
         for t in tracks:
             tid = t.track_id
             tr = self._tracks.get(tid)
-            if tr is not None:
+            if tr is not None and tr.measured_share() >= MIN_MEASURED_SHARE:
                 out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image_of(tid), tid),
                                                reported=t.reported))
             elif t.reported or tid == engaged or c.unreported_looming_sigmas > 0:
@@ -679,14 +690,6 @@ class DecisionMaker:
                 and o.tau_s >= c.unreported_looming_sigmas * o.tau_std_s):
             # no range and perception calls it clutter: the image alone won't do, unless its
             # growth is beyond doubt (τ/σ_τ = expansion/σ_expansion, to first order)
-            return None
-        if (o.source == "depth" and not o.reported and o.measured_share is not None
-                and o.measured_share < MIN_MEASURED_SHARE):
-            # perception calls it clutter, the image gives no time to contact, and depth found
-            # it now and then only: wrong matches that the track follows from frame to frame,
-            # each at another distance (the `stereo_clumps` world, object-free: a track over a
-            # tree 46 m off, measured in 4 of 20 frames at 15.2, 14.9, 9.2 and 8.9 m, 'closed'
-            # at 13 m/s and was evaded)
             return None
         if (o.source == "image" and c.image_max_passage_std_m > 0 and o.miss_sizes_std is not None
                 and o.miss_sizes_std * c.object_diameter_min_m > c.image_max_passage_std_m):

@@ -117,7 +117,8 @@ def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: flo
         sub = small[y:y + bh, x:x + bw]
         n, labels, stats, _ = cv2.connectedComponentsWithStats(sub, connectivity=8)
         area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-        inv_z = np.bincount(labels.ravel(), weights=inv[y:y + bh, x:x + bw].ravel(), minlength=n) / area
+        inv_z = np.bincount(labels.ravel(), weights=inv[y:y + bh, x:x + bw].ravel(),
+                            minlength=n) / np.maximum(area, 1.0)  # (the background may be empty)
         small_px = area * 4.0  # (half resolution: each mark stands for 2 x 2 pixels)
         drop = small_px < floor_px * inv_z * inv_z
         drop[0] = False  # (the unmarked background)
