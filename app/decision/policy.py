@@ -266,8 +266,7 @@ class _Track3D:
 
     def looked(self, t_s: float) -> None:
         """Its blob was read in depth at ``t_s`` (measured or not)."""
-        if self.looks[-1] != t_s:
-            self.looks.append(t_s)
+        self.looks.append(t_s)
         while self.looks[0] < t_s - RANGE_RATE_WINDOW_S:
             self.looks.popleft()
 
@@ -354,8 +353,8 @@ class _Track3D:
 
     def measured_share(self) -> float:
         """Of the looks at its blob in depth over the newest ``RANGE_RATE_WINDOW_S``, the share
-        that measured it."""
-        return min(1.0, sum(1 for t, _ in self.ranges if t >= self.looks[0]) / len(self.looks))
+        that measured it (every range was taken at a look)."""
+        return sum(1 for t, _ in self.ranges if t >= self.looks[0]) / len(self.looks)
 
 
 class DecisionMaker:
