@@ -65,6 +65,10 @@ def test_yaml_dump_round_trips() -> None:
          "the same stereo error"),
         ({"perception": {"detection": {"near_sigmas": -1}}},
          "perception.detection.near_sigmas = -1: must be >= 0"),
+        ({"perception": {"detection": {"near_min_size_m": 0.3}}},
+         "perception.detection.near_min_size_m = 0.3: must be <= decision.object_diameter_min_m (0.15): "
+         "the depth path would drop objects the decision takes as plausible"),
+        ({"decision": {"min_depth_cover": 1.5}}, "decision.min_depth_cover = 1.5: must be <= 1"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
         ({"perception": {"detection": {"lk_pyramid_levels": 3}}},
