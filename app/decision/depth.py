@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.camera import CameraModel
+from app.perception.near import patch_floor_px
 from app.perception.recognition import Cluster
 
 # The near surface: depth points within this many range errors of the object's distance ...
@@ -123,8 +124,7 @@ def object_depth(
         # `stereo` world, object-free: 8 of a cluster's 4 784 depth points were 3.2-9.5 m off
         # where the rest lay at 28-65 m, and the 25th percentile of those 8 read 3.6 m)
         return None
-    if min_cover > 0.0 and len(near) < min_cover * math.pi / 4.0 * (
-            min_size_m * cam.depth.fx / z_obj) * (min_size_m * cam.depth.fy / z_obj):
+    if len(near) < patch_floor_px(cam.depth.fx, cam.depth.fy, min_size_m, min_cover) / (z_obj * z_obj):
         # A surface smaller than any object could be at that distance: a stereo camera's wrong
         # matches come in clumps of a few pixels too (3 x 3 clumps over 1.8 % of the frame:
         # 126 false evasions in 10 object-free minutes, seed 43, from clumps read as 9-point

@@ -40,11 +40,11 @@ MAX_M = 65.535  # what a uint16 millimetre frame holds
 MIN_COVER = 0.25
 
 
-def patch_floor_px(fx_px: float, fy_px: float, size_m: float) -> float:
-    """The fewest depth pixels a marked patch 1 m off must hold (``MIN_COVER`` of a disc
-    ``size_m`` across, in a depth lens of focal lengths ``fx_px``, ``fy_px``); at z m, this
-    over z²; 0 when ``size_m`` is 0 (no floor)."""
-    return MIN_COVER * math.pi / 4.0 * (size_m * fx_px) * (size_m * fy_px)
+def patch_floor_px(fx_px: float, fy_px: float, size_m: float, cover: float = MIN_COVER) -> float:
+    """The fewest depth pixels a surface 1 m off must hold (``cover`` of a disc ``size_m``
+    across, in a depth lens of focal lengths ``fx_px``, ``fy_px``); at z m, this over z²; 0
+    when ``size_m`` or ``cover`` is 0 (no floor)."""
+    return cover * math.pi / 4.0 * (size_m * fx_px) * (size_m * fy_px)
 
 
 def depth_lens(camera: CameraModel, stream: str) -> CameraModel | None:

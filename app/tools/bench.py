@@ -17,12 +17,12 @@ from typing import cast
 import cv2
 import numpy as np
 
+from app.camera import Intrinsics
 from app.config import Config
 from app.perception import near
 from app.perception.frames import Frame
 from app.perception.pipeline import Perception, PerceptionResult
 from app.sim.synthetic import SyntheticScene, render
-from app.sim.world import D435I_DEPTH_FX_PX
 
 STAGES = ("detection_ms", "recognition_ms", "tracking_ms", "total_ms")
 # The variants take turns every this many frames (about 0.1 + 0.3 s here): the development VM's
@@ -150,7 +150,8 @@ def run_bench(cfg: Config, frames: int = 300, repeats: int = 5, seed: int = 1,
         # full-frame / windows ratio of the median total within each turn: its spread
         "turn_speedup_p10_p50_p90": [round(float(np.percentile(turn_ratios, q)), 2) for q in (10, 50, 90)],
     }
-    result["depth_path"] = _stats(time_near(clip, cfg))
+    lens = SyntheticScene(width=width, height=480).camera().depth  # the lens the clip's depth was drawn in
+    result["depth_path"] = _stats(time_near(clip, cfg, lens))
     result["speedup_vs_full_frame"] = round(
         float(result["baseline_median_ms_per_frame"]) / float(result["median_ms_per_frame"]), 2  # type: ignore[arg-type]
     )
@@ -165,15 +166,14 @@ def run_bench(cfg: Config, frames: int = 300, repeats: int = 5, seed: int = 1,
     return result
 
 
-def time_near(frames: list[Frame], cfg: Config, repeats: int = 3) -> np.ndarray:
+def time_near(frames: list[Frame], cfg: Config, lens: Intrinsics, repeats: int = 3) -> np.ndarray:
     """The depth path's time per frame (app.perception.near, ms) on the clip's depth: it runs
     only where depth is registered to the image (the infrared imager), so it is not in the
     stages' figures; timed at ``near_sigmas`` 5 when the configuration has it off, with the
-    D435i's depth lens at the clip's width for its patch floor."""
+    patch floor of the clip's depth ``lens``."""
     d = cfg.perception.detection
     sigmas = d.near_sigmas or 5.0
-    fx = D435I_DEPTH_FX_PX * frames[0].color.shape[1] / 848.0 if frames else D435I_DEPTH_FX_PX
-    floor = near.patch_floor_px(fx, fx, d.near_min_size_m)
+    floor = near.patch_floor_px(lens.fx, lens.fy, d.near_min_size_m)
     times = []
     for _ in range(repeats):
         for f in frames:
