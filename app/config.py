@@ -370,6 +370,18 @@ class CaptureConfig:
                              "resolution), px", gt=0)
     depth_height: int = param(480, "depth stream height, px", gt=0)
     depth_fps: int = param(60, "depth frame rate, frames/s", choices=(6, 15, 30, 60, 90))
+    # high_accuracy: Intel's preset with the higher confidence threshold and lower fill
+    # (librealsense wiki, "D400 Series Visual Presets"). A wrong match is a range that can
+    # start an evasion (126 false evasions in 10 simulated minutes of clumped mismatches before
+    # the depth guards, docs/measurements.md); a missing one leaves the object to the image.
+    # Not measured on a camera here: compare in field tests.
+    depth_preset: str = param(
+        "high_accuracy",
+        "the D435i's depth preset, set when the live camera starts: high_accuracy (fewer wrong "
+        "matches, less fill), default, medium_density, high_density (more fill, more wrong "
+        "matches) or keep (whatever the camera holds)",
+        choices=("high_accuracy", "default", "medium_density", "high_density", "keep"),
+    )
     enable_imu: bool = param(False, "also stream the IMU (accel + gyro); off: less USB and CPU load")
     frame_timeout_ms: float = param(
         500.0, "no frame for this long is a stall: restart the pipeline, ms", gt=0

@@ -91,10 +91,27 @@ def _image_kind(rs: Any, stream: str) -> Any:
     return rs.stream.infrared if stream == "infrared" else rs.stream.color
 
 
+def configure_depth_sensor(rs: Any, sensor: Any, stream: str, preset: str) -> None:
+    """The depth pair's settings: the visual preset ``preset`` (``capture.depth_preset``;
+    "keep" leaves the camera's), then, for ``stream`` "infrared", the IR projector off. In
+    that order: a preset carries its own laser settings and would switch the projector back
+    on. A camera without the option (an older firmware) is logged, not refused."""
+    if preset != "keep":
+        if sensor.supports(rs.option.visual_preset):
+            sensor.set_option(rs.option.visual_preset, float(getattr(rs.rs400_visual_preset, preset)))
+            log.info("camera: depth preset %s", preset)
+        else:
+            log.warning("camera: this depth sensor has no visual presets; capture.depth_preset "
+                        "%s is not applied", preset)
+    if stream == "infrared" and sensor.supports(rs.option.emitter_enabled):
+        sensor.set_option(rs.option.emitter_enabled, 0.0)
+        log.info("camera: IR projector off (perception sees the infrared imager)")
+
+
 class _Live:
     """The D435i through ``rs.pipeline`` (its frame syncer and queue)."""
 
-    def __init__(self, rs: Any, config: Any, stream: str) -> None:
+    def __init__(self, rs: Any, config: Any, stream: str, preset: str) -> None:
         self.pipeline = rs.pipeline()
         profile = self.pipeline.start(config)
         self.device = profile.get_device()
@@ -103,9 +120,7 @@ class _Live:
             if sensor.supports(rs.option.global_time_enabled):
                 sensor.set_option(rs.option.global_time_enabled, 1.0)
         depth_sensor = self.device.first_depth_sensor()
-        if stream == "infrared" and depth_sensor.supports(rs.option.emitter_enabled):
-            depth_sensor.set_option(rs.option.emitter_enabled, 0.0)
-            log.info("camera: IR projector off (perception sees the infrared imager)")
+        configure_depth_sensor(rs, depth_sensor, stream, preset)
         self.color = (profile.get_stream(rs.stream.infrared, 1) if stream == "infrared"
                       else profile.get_stream(rs.stream.color))
         self.depth = profile.get_stream(rs.stream.depth)
@@ -242,8 +257,9 @@ class RealSenseSource(FrameSource):
             raise SourceError("no RealSense camera found: is the D435i on a USB 3 port "
                               "(lsusb lists 8086:0b3a) and the udev rule installed?")
         try:
-            backend: _Live | _Playback = (_Live(rs, self._config(), self.cfg.stream) if self.path is None
-                                          else _Playback(rs, self.path, self.cfg.stream))
+            backend: _Live | _Playback = (
+                _Live(rs, self._config(), self.cfg.stream, self.cfg.depth_preset) if self.path is None
+                else _Playback(rs, self.path, self.cfg.stream))
         except RuntimeError as exc:
             if first:
                 what = str(self.path) if self.path else f"RealSense camera {self.cfg.serial}".strip()

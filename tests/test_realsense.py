@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -15,12 +16,17 @@ rs = pytest.importorskip("pyrealsense2", exc_type=ImportError)
 
 from app.camera import CameraModel, Intrinsics  # noqa: E402
 from app.cli import main  # noqa: E402
-from app.config import CaptureConfig  # noqa: E402
-from app.errors import SourceError  # noqa: E402
+from app.config import CaptureConfig, load_config  # noqa: E402
+from app.errors import ConfigError, SourceError  # noqa: E402
 from app.perception.frames import Frame  # noqa: E402
 from app.runtime.sources import open_source  # noqa: E402
 from app.sim.synthetic import approach_scene, render  # noqa: E402
-from hardware.realsense import CameraLost, RealSenseSource, write_realsense_recording  # noqa: E402
+from hardware.realsense import (  # noqa: E402
+    CameraLost,
+    RealSenseSource,
+    configure_depth_sensor,
+    write_realsense_recording,
+)
 
 # a D435i-like calibration: depth and colour lenses differ, 15 mm baseline, a slight rotation
 ANGLE = np.deg2rad(0.5)
@@ -104,6 +110,43 @@ def test_writing_colour_frames_as_infrared_is_refused_by_name(tmp_path: Path) ->
     assert not (tmp_path / "bad.db3").exists()  # nothing half-written left behind
     with pytest.raises(ValueError, match="stream 'thermal'"):
         write_realsense_recording(frames(2), CAMERA, 30.0, tmp_path / "bad2.db3", stream="thermal")
+
+
+def depth_sensor_with(*options: Any) -> Any:
+    """A pyrealsense2 software sensor with the depth pair's writable ``options`` (ranges as
+    a D435i reports them: presets 0-6, default 1; the projector 0-1, on)."""
+    sensor = rs.software_device().add_sensor("Stereo Module")
+    for option in options:
+        r = rs.option_range()
+        r.min, r.max, r.step, r.default = (0, 6, 1, 1) if option == rs.option.visual_preset else (0, 1, 1, 1)
+        sensor.add_option(option, r, True)
+    return sensor
+
+
+def test_the_depth_preset_is_set_and_the_projector_left_off_for_the_infrared_image(
+        caplog: pytest.LogCaptureFixture) -> None:
+    sensor = depth_sensor_with(rs.option.visual_preset, rs.option.emitter_enabled)
+    configure_depth_sensor(rs, sensor, "infrared", "high_accuracy")
+    assert sensor.get_option(rs.option.visual_preset) == float(rs.rs400_visual_preset.high_accuracy)
+    assert sensor.get_option(rs.option.emitter_enabled) == 0.0
+    # colour: the projector stays as the preset left it; "keep" touches no preset
+    sensor = depth_sensor_with(rs.option.visual_preset, rs.option.emitter_enabled)
+    configure_depth_sensor(rs, sensor, "color", "keep")
+    assert sensor.get_option(rs.option.visual_preset) == 1.0
+    assert sensor.get_option(rs.option.emitter_enabled) == 1.0
+    # a firmware without presets is said in the log, and the projector is still switched off
+    sensor = depth_sensor_with(rs.option.emitter_enabled)
+    with caplog.at_level("WARNING", logger="hardware.realsense"):
+        configure_depth_sensor(rs, sensor, "infrared", "high_density")
+    assert "no visual presets; capture.depth_preset high_density is not applied" in caplog.text
+    assert sensor.get_option(rs.option.emitter_enabled) == 0.0
+
+
+def test_an_unknown_depth_preset_is_refused_by_name(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("capture:\n  depth_preset: hight_accuracy\n")
+    with pytest.raises(ConfigError, match="depth_preset"):
+        load_config(bad)
 
 
 def test_a_stall_restarts_the_pipeline_and_frames_come_again(
