@@ -69,6 +69,9 @@ def test_yaml_dump_round_trips() -> None:
          "perception.detection.near_min_size_m = 0.3: must be <= decision.object_diameter_min_m (0.15): "
          "the depth path would drop objects the decision takes as plausible"),
         ({"decision": {"min_depth_cover": 1.5}}, "decision.min_depth_cover = 1.5: must be <= 1"),
+        ({"decision": {"response_speed_mps": 4.0, "evade_speed_mps": 3.5}},
+         "decision.response_speed_mps = 4: must be <= evade_speed_mps (3.5): the trigger would count "
+         "on a speed the evasion is not flown at"),
         ({"perception": {"detection": {"min_points_per_window": 30}}},
          "perception.detection.min_points_per_window = 30: must be <= max_points_per_window (15)"),
         ({"perception": {"detection": {"lk_pyramid_levels": 3}}},

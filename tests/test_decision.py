@@ -288,11 +288,11 @@ def test_hysteresis_keeps_direction_and_releases_past_the_margin() -> None:
 
 
 def test_eq_4_3_round_trips_and_is_explained() -> None:
-    cfg = config_from_mapping({"decision": {"avoid_m": None, "safe_window_m": 1.5,
-                                            "object_speed_mps": 2.0, "max_speed_mps": 3.0}})
+    paper = {"safe_window_m": 1.5, "evade_speed_mps": 3.0, "max_speed_mps": 3.0}  # §5-C's figures
+    cfg = config_from_mapping({"decision": {"avoid_m": None, "object_speed_mps": 2.0, **paper}})
     assert math.isclose(avoid_distance_m(cfg.decision), 1.0)
     # and back: the given avoid_m implies v_obj = avoid * v_max / R_safe
-    given_cfg = Config()
+    given_cfg = config_from_mapping({"decision": paper})
     text = explain(given_cfg)
     assert "v_obj = avoidThresh * v_max / R_safe = 2 m/s" in text
     assert "= 1.5 * 2 / 3 = 1 m (derived)" in explain(cfg)

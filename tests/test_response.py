@@ -92,7 +92,35 @@ def test_a_threat_is_evaded_once_the_time_left_falls_to_the_vehicles_need() -> N
     assert first.action == NONE  # one frame of the image alone is not enough
     cmd = frames(dm, lambda dt, t: [image_obj(late - 1 / 30 - dt, (0.0, 0.0), t=t)], n=2, t0=1.0 + 1 / 30)
     assert cmd.action == EVADE and "tau" in cmd.reason and "need" in cmd.reason and "(image)" in cmd.reason
-    assert math.isclose(cmd.speed_mps, min(CFG.evade_speed_mps, CFG.max_speed_mps))
+    assert CFG.response_speed_mps * 0.5 <= cmd.speed_mps <= CFG.max_speed_mps + 1e-9
+
+
+def test_the_evasion_is_flown_faster_than_planned_in_the_direction_it_was_chosen_for() -> None:
+    """The trigger and the escape count on response_speed_mps (3 m/s); the command goes out
+    at up to evade_speed_mps (6) along the same direction, as far as PX4's vertical caps let
+    it: sideways at 6, an up-diagonal at 4.2 (its climb at MPC_Z_VEL_MAX_UP, 3 m/s), a
+    down-diagonal as planned (its descent already at MPC_Z_VEL_MAX_DN, 1.5 m/s)."""
+    dm = DecisionMaker(CFG, CAM)
+    s = 1 / math.sqrt(2)
+    for d, speed in (((1.0, 0.0), 6.0), ((-s, -s), 3 * math.sqrt(2)), ((s, s), math.hypot(3 * s, 1.5)),
+                     ((0.0, -1.0), 3.0)):
+        planned, flown = dm._velocity(d), dm._flown(d)
+        assert math.hypot(*flown) == pytest.approx(speed, abs=1e-6)
+        assert flown[0] * planned[1] == pytest.approx(flown[1] * planned[0], abs=1e-9)  # one direction
+        assert flown[0] * planned[0] + flown[1] * planned[1] > 0
+    # when it evades is the plan's, whatever the speed flown
+    def course(dt: float, t: float) -> list[ObjectState]:
+        return [image_obj(0.95 - dt, (0.5, 0.0), t=t)]
+    firsts = []
+    for evade in (3.0, 6.0):
+        cfg = dataclasses.replace(CFG, evade_speed_mps=evade)
+        dm = DecisionMaker(cfg, CAM)
+        for k in range(30):
+            cmd = dm.decide_response(course(k / 30, k / 30), k / 30, ALT)
+            if cmd.action == EVADE:
+                firsts.append((k, cmd.right_mps / evade, cmd.down_mps))
+                break
+    assert len(firsts) == 2 and firsts[0][0] == firsts[1][0] and firsts[0][1] == pytest.approx(firsts[1][1])
 
 
 @pytest.mark.parametrize(("fps", "needed"), [(30.0, 3), (60.0, 5)])

@@ -386,7 +386,8 @@ class DecisionMaker:
         self._image_votes: dict[int, tuple[int, float, float, float]] = {}
         self._engaged: _Engagement | None = None
         self.response = ResponseModel(cfg.response_dead_time_s, cfg.response_lag_s,
-                                      cfg.response_accel_mps2, min(cfg.evade_speed_mps, cfg.max_speed_mps))
+                                      cfg.response_accel_mps2,
+                                      min(cfg.response_speed_mps, cfg.evade_speed_mps, cfg.max_speed_mps))
 
     @classmethod
     def for_perception(cls, cfg: DecisionConfig, camera: CameraModel,
@@ -799,19 +800,36 @@ class DecisionMaker:
             return Command(STOP, object_id=primary.track_id,
                            reason=f"no escape direction clears objects {ids}: stop")
         self._engaged = _Engagement(EVADE, eng.object_id if eng else primary.track_id, direction)
-        right, down = self._velocity(direction)
+        right, down = self._flown(direction)
         return Command(EVADE, 0.0, right, down, self._engaged.object_id,
                        reason=f"object {primary.track_id} {why}: evade {describe_direction(direction)}")
 
     def _velocity(self, d: tuple[float, float]) -> tuple[float, float]:
-        """The evasion velocity (right, down m/s) along ``d`` at the evasion speed, its
-        vertical part within what PX4 flies in Offboard (MPC_Z_VEL_MAX_DN / _UP: a faster
-        descent is commanded but not flown, and the escape would be judged on a speed the
-        vehicle does not reach)."""
+        """The evasion velocity (right, down m/s) the trigger and the escape count on: along
+        ``d`` at ``response_speed_mps``, its vertical part within what PX4 flies in Offboard
+        (MPC_Z_VEL_MAX_DN / _UP: a faster descent is commanded but not flown, and the escape
+        would be judged on a speed the vehicle does not reach)."""
         c = self.cfg
-        speed = min(c.evade_speed_mps, c.max_speed_mps)
+        speed = self.response.speed_mps
         right, down = d[0] * speed, d[1] * speed
         return right, max(-c.max_climb_mps, min(c.max_descent_mps, down))
+
+    def _flown(self, d: tuple[float, float]) -> tuple[float, float]:
+        """The evasion velocity commanded: :meth:`_velocity` scaled up towards
+        ``evade_speed_mps`` as far as the vertical caps allow, so that the vehicle moves in
+        the direction the escape was chosen for, only further (a down-diagonal, already at
+        the descent cap, is flown as planned)."""
+        c = self.cfg
+        right, down = self._velocity(d)
+        plan = math.hypot(right, down)
+        if plan <= 0:
+            return right, down
+        k = max(1.0, min(c.evade_speed_mps, c.max_speed_mps) / plan)
+        if down > 0:
+            k = min(k, max(1.0, c.max_descent_mps / down))
+        elif down < 0:
+            k = min(k, max(1.0, c.max_climb_mps / -down))
+        return right * k, down * k
 
     def _escape(self, threats: list[ObjectState], latched: tuple[float, float] | None,
                 can_descend: bool) -> tuple[float, float] | None:
