@@ -824,11 +824,12 @@ class DecisionMaker:
         plan = math.hypot(right, down)
         if plan <= 0:
             return right, down
-        k = max(1.0, min(c.evade_speed_mps, c.max_speed_mps) / plan)
+        # each ratio >= 1: the plan is at or under every one of these bounds already
+        k = min(c.evade_speed_mps, c.max_speed_mps) / plan
         if down > 0:
-            k = min(k, max(1.0, c.max_descent_mps / down))
+            k = min(k, c.max_descent_mps / down)
         elif down < 0:
-            k = min(k, max(1.0, c.max_climb_mps / -down))
+            k = min(k, c.max_climb_mps / -down)
         return right * k, down * k
 
     def _escape(self, threats: list[ObjectState], latched: tuple[float, float] | None,
