@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
 from app.camera import CameraModel, Intrinsics
 from app.config import Config
-from app.perception.near import near_mask, patch_floor_px, registered
+from app.perception.near import REACH_PX, grow_persistent, near_mask, patch_floor_px, registered
+from app.perception.recognition import Recognizer
 from app.sim.openloop import fly_open_loop
 from app.sim.simulate import Encounter
 
@@ -77,6 +79,44 @@ def test_an_object_nearer_than_the_ground_behind_it_is_marked(z_m: float, radius
     assert marked[~near_it].sum() <= 0.001 * np.count_nonzero(depth)
 
 
+@pytest.mark.parametrize("row", [310, 311])
+def test_a_bird_seen_head_on_a_line_of_wing_one_pixel_tall_is_marked(row: int) -> None:
+    """A 0.45 m bird at 15 m seen head-on, its wings level: a line 13 px long and one pixel
+    tall (the shaped world's birds, seed 43, in front of ground ~35 m off), on an even row and
+    on an odd one. Every other row of the depth missed it on one of the two."""
+    depth = ground_depth(6.0)
+    rng = np.random.default_rng(3)
+    wing = np.s_[row, 494:507]
+    depth[wing] = np.round(1000.0 / (1.0 / 15.0 + rng.normal(0.0, NOISE, 13))).astype(np.uint16)
+    marked = mask_of(depth)
+    assert marked[wing].mean() > 0.7
+    off = np.ones_like(marked)
+    off[row - 3:row + 4, 491:510] = False
+    assert marked[off].sum() <= 0.001 * np.count_nonzero(depth)
+    # grown as the grey difference is dilated (detection.dilate_ksize) once it was there a frame
+    # ago, the line is a cluster to the recognizer; as marked, it is under the smallest cluster
+    cfg = Config().perception
+    recognize = Recognizer(cfg.recognition)
+    marks = near_mask(depth, 0.001, 5.0, NOISE, 80, 0.2, 65.535)
+    k = cfg.detection.dilate_ksize
+
+    def grown(before_depth: np.ndarray | None, shift: int = 0) -> np.ndarray:
+        before = None
+        if before_depth is not None:  # the frame before: the same line, ``shift`` rows away
+            marks_before = near_mask(before_depth, 0.001, 5.0, NOISE, 80, 0.2, 65.535)
+            moved = np.roll(marks_before, shift, axis=0), np.roll(before_depth, shift, axis=0)
+            _, before = grow_persistent(*moved, 0.001, None, REACH_PX, k)
+        return grow_persistent(marks, depth, 0.001, before, REACH_PX, k)[0]
+
+    assert not recognize(grown(None))[0]
+    assert not recognize(grown(depth, REACH_PX + 4))[0]  # farther than its reach
+    far = depth.copy()
+    far[wing] = np.round(1000.0 / (1.0 / 11.0 + rng.normal(0.0, NOISE, 13))).astype(np.uint16)
+    assert not recognize(grown(far, REACH_PX - 2))[0]  # a frame ago, but 11 m off: another surface
+    clusters, _ = recognize(grown(depth, REACH_PX - 2))
+    assert len(clusters) == 1 and abs(clusters[0].x - 500.0) < 2 and abs(clusters[0].y - row) < 2
+
+
 def test_single_wrong_matches_are_not_marked_but_a_small_object_is() -> None:
     """Stereo's wrong matches: 0.2 % of the ground's pixels (far ground, 6 m up) take a
     disparity up to 8 px off, many of them metres nearer than the ground around them. Alone
@@ -126,7 +166,12 @@ def test_clumps_of_wrong_matches_are_not_marked_but_the_smallest_object_is() -> 
 
     near6 = (depth > 0) & (depth < 6000)  # (the ground 6 m up is 6 m off only at the frame's foot)
     assert (marks(depth, 0.0) & near6).sum() > 300  # kept by the neighbour test alone
-    assert not (marks(depth, floor) & near6).any()
+    # every patch left reads farther than 6 m over its pixels (its own wrong readings may dip
+    # under: a patch is judged by its mean, 1/mean(1/z), as the floor judges it)
+    n, labels = cv2.connectedComponents(marks(depth, floor).astype(np.uint8))
+    for i in range(1, n):
+        inv = 1000.0 / depth[(labels == i) & (depth > 0)]
+        assert 1.0 / inv.mean() > 6.0
     # (a clump marked as 2 x 2 at half resolution, 16 px, is a quarter of that disc 7 m off:
     # farther, size cannot tell it from a small object, and the decision's tests take over)
     vv, uu = np.mgrid[0:H, 0:W]

@@ -25,6 +25,7 @@ too; it is the decision's depth track, not this mask, that tells whether it clos
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -38,6 +39,14 @@ MAX_M = 65.535  # what a uint16 millimetre frame holds
 # measurement it shares (real objects' near surfaces held >= 0.96 of that disc in the open loop,
 # seed 11, `stereo` world; clumps of wrong matches 0.01-0.2)
 MIN_COVER = 0.25
+# How far a marked patch may have moved since the frame before and still count as there a frame
+# ago (grow_persistent), px: a threat on a collision course holds its bearing and only grows (its
+# rim by under a pixel a frame until its last half second)
+REACH_PX = 8
+# ... and how much its mean inverse depth may have changed (a share of it): a threat closing at
+# 25 m/s changes its range by 0.83 m a frame at 30 fps, 15 % of it at 5.5 m, nearer than which
+# its marks make a cluster by themselves (a 0.25 m ball there is 19 px across)
+SAME_RANGE = 0.15
 
 
 def patch_floor_px(fx_px: float, fy_px: float, size_m: float, cover: float = MIN_COVER) -> float:
@@ -71,6 +80,30 @@ def registered(camera: CameraModel | None, shape: tuple[int, int]) -> bool:
             and np.allclose(camera.translation_m, 0.0, atol=1e-4))
 
 
+def _second_nearest_of_blocks(depth: np.ndarray) -> np.ndarray:
+    """``depth`` (uint16, 0 = no data) at half resolution, each pixel the second nearest valid
+    depth of its 2 x 2 block (0 where the block has fewer than two). Not every other pixel: a
+    bird seen head-on is a line of wing one or two rows tall, which every other row misses half
+    the time (the shaped world, seed 43: birds 10-20 m off in front of ground 30 m off, first
+    marked at 11 m); not the nearest either: a stereo camera's lone wrong matches, some far
+    nearer than the ground, would be kept four times as often. Two pixels of a block hold a
+    line one pixel thick in either direction, and one pixel of data beside no data is no data,
+    as before: one value of the block, never a mixture."""
+    if depth.dtype != np.uint16:
+        raise ValueError(f"near_mask: expected uint16 depth, got {depth.dtype}")
+    h, w = depth.shape
+    shifted = depth - np.uint16(1)  # no data (0) wraps to 65535: never nearer than data
+    if h % 2 or w % 2:  # (odd sizes: the last row or column pairs with itself)
+        shifted = np.pad(shifted, ((0, h % 2), (0, w % 2)), mode="edge")
+    top, bottom = shifted[0::2], shifted[1::2]
+    a, b = top[:, 0::2], top[:, 1::2]
+    c, d = bottom[:, 0::2], bottom[:, 1::2]
+    low1, high1 = np.minimum(a, b), np.maximum(a, b)
+    low2, high2 = np.minimum(c, d), np.maximum(c, d)
+    second = np.minimum(np.maximum(low1, low2), np.minimum(high1, high2))
+    return second + np.uint16(1)  # 65535 (fewer than two with data) wraps back to 0
+
+
 def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: float,
               window_px: int, min_m: float, max_m: float, floor_px: float = 0.0) -> np.ndarray:
     """The pixels (uint8 0/255, ``depth``'s shape) whose inverse depth exceeds the mean
@@ -83,7 +116,7 @@ def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: flo
     if depth.ndim != 2:
         raise ValueError(f"near_mask: expected a single-channel depth image, got shape {depth.shape}")
     h, w = depth.shape
-    half = np.ascontiguousarray(depth[::2, ::2])  # every other pixel: no mixing of no-data with data
+    half = _second_nearest_of_blocks(depth)
     lo, hi = min_m / scale_m, max_m / scale_m  # in depth units
     valid = cv2.inRange(half, math.ceil(lo), min(math.floor(hi), 65535))  # 255 where valid
     ones = cv2.convertScaleAbs(valid, alpha=1.0 / 255.0).astype(np.float32)  # 1.0 where valid
@@ -130,3 +163,71 @@ def near_mask(depth: np.ndarray, scale_m: float, sigmas: float, noise_per_m: flo
         x0, y0 = 2 * x, 2 * y
         out[y0:y0 + 2 * bh, x0:x0 + 2 * bw] = up[:h - y0, :w - x0]
     return out
+
+
+class Patches(NamedTuple):
+    """One frame's marked patches, for the next frame's :func:`grow_persistent`: each marked
+    pixel's patch mean inverse depth (1/m, float32, 0 unmarked) over a box of the frame whose
+    top-left pixel is (``x``, ``y``); nothing is marked outside it."""
+
+    x: int
+    y: int
+    inverse_m: np.ndarray
+
+
+def grow_persistent(marks: np.ndarray, depth: np.ndarray, scale_m: float, before: Patches | None,
+                    reach_px: int, dilate_px: int) -> tuple[np.ndarray, Patches | None]:
+    """``marks`` (uint8 0/255) with each connected patch that was there a frame ago dilated by
+    a ``dilate_px`` square; and what the next frame's call takes as ``before`` (None when
+    nothing is marked).
+
+    There a frame ago: within ``reach_px`` of a patch of the frame before whose mean range
+    is within ``SAME_RANGE`` of its own. Dilated as the grey difference is before its threshold
+    (``detection.dilate_ksize``), so that an object is as large a blob in either mask: the
+    recognizer's smallest cluster (``recognition.area_px``) is set for dilated blobs, and a
+    bird seen head-on, a wing line of 20 marked px at 20 m, made a cluster only from 9 m on
+    (the shaped world, seed 43). Only patches that were there: an object on a collision course
+    holds its bearing and its range, while a stereo camera's wrong matches come and go at
+    random ranges, and grown they became clusters, tracks and commands (the `stereo_clumps`
+    world, seed 43: object-free flights whose fast run would command, 1 -> 21 of 40 when
+    every patch was grown, 3 when those within reach of one of the frame before were, 1 with
+    the range checked too)."""
+    x, y, bw, bh = cv2.boundingRect(marks)
+    if not (bw and bh):
+        return marks, None
+    h, w = marks.shape
+    m = max(reach_px, dilate_px // 2 + 1)  # a margin the dilations cannot cross
+    ya, yb, xa, xb = max(0, y - m), min(h, y + bh + m), max(0, x - m), min(w, x + bw + m)
+    box = marks[ya:yb, xa:xb]
+    n, labels = cv2.connectedComponents(box, connectivity=8)
+    d = depth[ya:yb, xa:xb]
+    with_data = (box > 0) & (d > 0)
+    inv = 1.0 / (d[with_data].astype(np.float64) * scale_m)
+    count = np.bincount(labels[with_data], minlength=n)
+    mean = np.bincount(labels[with_data], weights=inv, minlength=n) / np.maximum(count, 1)
+    mean[0] = 0.0  # (the unmarked background)
+    here = mean[labels].astype(np.float32)
+    patches = Patches(xa, ya, here)
+    if before is None or dilate_px <= 1:
+        return marks, patches
+    prev = np.zeros_like(here)  # the frame before's patches, in this box
+    bx, by, bh_, bw_ = before.x, before.y, *before.inverse_m.shape
+    ox0, oy0, ox1, oy1 = max(xa, bx), max(ya, by), min(xb, bx + bw_), min(yb, by + bh_)
+    if ox1 <= ox0 or oy1 <= oy0:
+        return marks, patches
+    prev[oy0 - ya:oy1 - ya, ox0 - xa:ox1 - xa] = before.inverse_m[oy0 - by:oy1 - by, ox0 - bx:ox1 - bx]
+    reach = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * reach_px + 1, 2 * reach_px + 1))
+    nearest = cv2.dilate(prev, reach)  # the nearest patch of the frame before within reach
+    farthest = cv2.erode(np.where(prev > 0, prev, np.float32(np.inf)), reach)
+    same = (here > 0) & (nearest > 0) & (here <= nearest * (1.0 + SAME_RANGE)) & (
+        here >= farthest * (1.0 - SAME_RANGE))
+    seen = np.zeros(n, bool)
+    seen[labels[same]] = True
+    seen[0] = False
+    if not seen.any():
+        return marks, patches
+    out = marks.copy()
+    grown = cv2.dilate(np.where(seen[labels], np.uint8(255), np.uint8(0)),
+                       cv2.getStructuringElement(cv2.MORPH_RECT, (dilate_px, dilate_px)))
+    out[ya:yb, xa:xb] |= grown
+    return out, patches

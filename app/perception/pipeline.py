@@ -58,6 +58,8 @@ class Perception:
         self.camera = camera
         self._near: bool | None = None  # decided on the first frame with depth
         self._near_floor_px = 0.0  # the depth path's smallest patch 1 m off (near.patch_floor_px), px
+        # the depth path's patches of the frame before (near.grow_persistent)
+        self._near_before: near.Patches | None = None
         self.detector = MotionDetector(cfg.detection, full_frame=full_frame_features)
         self.recognizer = Recognizer(cfg.recognition)
         self.tracker = Tracker(cfg.tracking)
@@ -71,6 +73,7 @@ class Perception:
         self.confidence.reset()
         self._pending = None
         self._pending_grey = None
+        self._near_before = None
 
     def push(self, frame: Frame) -> PerceptionResult | None:
         t0 = time.perf_counter()
@@ -131,4 +134,6 @@ class Perception:
         d = self.cfg.detection
         marked = near.near_mask(depth, self.camera.depth_scale_m, d.near_sigmas, d.near_noise_per_m,
                                 d.near_window_px, near.MIN_M, near.MAX_M, self._near_floor_px)
-        return cv2.bitwise_or(mask, marked)
+        grown, self._near_before = near.grow_persistent(marked, depth, self.camera.depth_scale_m,
+                                                        self._near_before, near.REACH_PX, d.dilate_ksize)
+        return cv2.bitwise_or(mask, grown)

@@ -176,12 +176,14 @@ def time_near(frames: list[Frame], cfg: Config, lens: Intrinsics, repeats: int =
     floor = near.patch_floor_px(lens.fx, lens.fy, d.near_min_size_m)
     times = []
     for _ in range(repeats):
+        before: near.Patches | None = None
         for f in frames:
             if f.depth is None:
                 continue
             t0 = time.perf_counter()
-            near.near_mask(f.depth, 0.001, sigmas, d.near_noise_per_m, d.near_window_px,
-                           near.MIN_M, near.MAX_M, floor)
+            marks = near.near_mask(f.depth, 0.001, sigmas, d.near_noise_per_m, d.near_window_px,
+                                   near.MIN_M, near.MAX_M, floor)
+            _, before = near.grow_persistent(marks, f.depth, 0.001, before, near.REACH_PX, d.dilate_ksize)
             times.append((time.perf_counter() - t0) * 1e3)
     return np.array(times) if times else np.array([math.nan])
 
