@@ -191,9 +191,11 @@ def test_an_object_against_the_empty_sky_marks_nothing() -> None:
     assert not mask_of(depth).any()
 
 
-def test_bad_depth_is_refused_by_shape() -> None:
+def test_bad_depth_is_refused_by_shape_and_type() -> None:
     with pytest.raises(ValueError, match="single-channel depth image, got shape"):
         near_mask(np.zeros((H, W, 3), np.uint16), 0.001, 5.0, NOISE, 80, 0.2, 65.535)
+    with pytest.raises(ValueError, match="expected uint16 depth, got float32"):
+        near_mask(np.zeros((H, W), np.float32), 0.001, 5.0, NOISE, 80, 0.2, 65.535)
 
 
 def test_only_depth_in_the_image_s_own_pixels_counts_as_registered() -> None:
