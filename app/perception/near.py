@@ -204,15 +204,16 @@ def grow_persistent(marks: np.ndarray, depth: np.ndarray, scale_m: float, before
     with_data = (box > 0) & (d > 0)
     inv = 1.0 / (d[with_data].astype(np.float64) * scale_m)
     count = np.bincount(labels[with_data], minlength=n)
+    # (label 0, the unmarked background, has no pixel with data: its mean is 0)
     mean = np.bincount(labels[with_data], weights=inv, minlength=n) / np.maximum(count, 1)
-    mean[0] = 0.0  # (the unmarked background)
     here = mean[labels].astype(np.float32)
     patches = Patches(xa, ya, here)
     if before is None or dilate_px <= 1:
         return marks, patches
     prev = np.zeros_like(here)  # the frame before's patches, in this box
-    bx, by, bh_, bw_ = before.x, before.y, *before.inverse_m.shape
-    ox0, oy0, ox1, oy1 = max(xa, bx), max(ya, by), min(xb, bx + bw_), min(yb, by + bh_)
+    bx, by = before.x, before.y
+    rows, cols = before.inverse_m.shape
+    ox0, oy0, ox1, oy1 = max(xa, bx), max(ya, by), min(xb, bx + cols), min(yb, by + rows)
     if ox1 <= ox0 or oy1 <= oy0:
         return marks, patches
     prev[oy0 - ya:oy1 - ya, ox0 - xa:ox1 - xa] = before.inverse_m[oy0 - by:oy1 - by, ox0 - bx:ox1 - bx]
@@ -222,8 +223,7 @@ def grow_persistent(marks: np.ndarray, depth: np.ndarray, scale_m: float, before
     same = (here > 0) & (nearest > 0) & (here <= nearest * (1.0 + SAME_RANGE)) & (
         here >= farthest * (1.0 - SAME_RANGE))
     seen = np.zeros(n, bool)
-    seen[labels[same]] = True
-    seen[0] = False
+    seen[labels[same]] = True  # (never the background: its ``here`` is 0)
     if not seen.any():
         return marks, patches
     out = marks.copy()
