@@ -88,6 +88,18 @@ def test_a_report_of_object_free_flight_alone_names_the_rate_it_was_flown_at(tmp
     assert "at 60 fps" in report and "at 30 fps" not in report
 
 
+def test_a_report_says_how_far_each_evasion_towards_the_passage_went_wrong(tmp_path: Path) -> None:
+    """A passage a few centimetres to one side of the line of flight and one half a metre
+    off are both 'towards'; the report gives each one's distance along the escape."""
+    crossing = [EncounterResult(Encounter(seed=s, approach_deg=30.0, miss_m=0.3), True, evaded=True,
+                                success=True, towards_passage=along > 0.05, passage_along_m=along)
+                for s, along in ((1, -0.3), (2, 0.06), (3, 0.52), (4, 0.02))]
+    report = write_report(tmp_path, [], [], load_config(None), 60.0, crossing=crossing).read_text()
+    line = next(ln for ln in report.splitlines() if ln.startswith("Crossing set"))
+    assert "2 of 4 first evasions moved towards" in line
+    assert "(the passage 0.06, 0.52 m along the escape)" in line
+
+
 def test_poisson_upper_bounds_match_the_exact_tables() -> None:
     assert poisson_upper(0, 1.0) == pytest.approx(2.996, abs=1e-3)  # "rule of three"
     assert poisson_upper(0, 15.0) == pytest.approx(0.1997, abs=1e-3)  # 15 h clean: <= 0.2 per hour
@@ -334,6 +346,9 @@ def test_the_true_passage_is_judged_on_the_course_not_on_one_frame_of_cruise_jit
         obj = (4.0 * t + 8.0 * (2.0 - t), 0.3 / (8.0 / math.hypot(8.0, 8.0)) + 8.0 * (2.0 - t), -6.0)
         rows.append(Truth(k, t, (n_v, 0.0, -6.0), obj, None))
     cam = SimpleNamespace(truth=rows)
-    away, _ = _direction_vs_truth(cam, 30, [0.0, -3.0, 0.0])  # type: ignore[arg-type]
-    towards, _ = _direction_vs_truth(cam, 30, [0.0, 3.0, 0.0])  # type: ignore[arg-type]
+    away, _, left_m = _direction_vs_truth(cam, 30, [0.0, -3.0, 0.0])  # type: ignore[arg-type]
+    towards, _, right_m = _direction_vs_truth(cam, 30, [0.0, 3.0, 0.0])  # type: ignore[arg-type]
     assert away is False and towards is True
+    # and by how much: the passage's sideways 0.21 m, along each escape
+    assert left_m is not None and right_m is not None
+    assert right_m == pytest.approx(0.21, abs=0.02) and left_m == pytest.approx(-right_m, abs=1e-3)

@@ -88,6 +88,7 @@ class OpenLoopResult:
     right_mps: float = 0.0
     down_mps: float = 0.0
     towards_passage: bool | None = None
+    passage_along_m: float | None = None  # the true passage along the escape's direction, m
     separation_m: float = math.inf  # the closest approach had it moved as the response model says
     cleared: bool = False
     reason: str = ""
@@ -174,7 +175,7 @@ def fly_open_loop(cfg: Config, enc: Encounter, set_name: str = "main") -> OpenLo
             closing = enc.own_speed_mps - enc.object_path()[1][0]  # north: the camera's Z
             res.true_tau_s = round(rel[0] / closing, 3) if closing > 0 else None
             if 20.0 <= abs(enc.approach_deg) <= 50.0 and command.action == EVADE:
-                res.towards_passage, _ = _direction_vs_passage(
+                res.towards_passage, _, res.passage_along_m = _direction_vs_passage(
                     truth, [0.0, command.right_mps, command.down_mps])
         break
     if window[0] and (t_cmd_s is None or enc.t_cpa_s - t_cmd_s <= 1.0):

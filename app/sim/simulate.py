@@ -217,6 +217,10 @@ class EncounterResult:
     # in its right/down plane), and along the object's lateral motion (into its path)
     towards_passage: bool | None = None
     into_path: bool | None = None
+    # how far the true passage lies along that evasion's direction, m: over
+    # TOWARDS_TOLERANCE_M it is towards; a few centimetres either way is the estimate's noise
+    # on a passage close to the line of flight, half a metre is a wrong side
+    passage_along_m: float | None = None
     false_evasions: int = 0  # commands with no object in the world
     frames: int = 0
     frames_dropped: int = 0
@@ -396,8 +400,8 @@ def analyse(enc: Encounter, camera: SimulatedCamera, folder: Path,
     if commands:
         first = commands[0]
         if 20.0 <= abs(enc.approach_deg) <= 50.0 and first["action"] == "evade":
-            res.towards_passage, res.into_path = _direction_vs_truth(camera, int(first["frame"]),
-                                                                     first["velocity_frd_mps"])
+            res.towards_passage, res.into_path, res.passage_along_m = _direction_vs_truth(
+                camera, int(first["frame"]), first["velocity_frd_mps"])
         res.evaded = True
         d = distance(int(first["frame"]))
         res.evade_range_m = None if d is None else round(d, 2)
@@ -435,26 +439,33 @@ def _true_passage(camera: SimulatedCamera, frame: int, window_s: float = 0.3
     return r + v * t, v
 
 
+TOWARDS_TOLERANCE_M = 0.05  # a passage further than this along the escape: towards it
+
+
 def _direction_vs_truth(camera: SimulatedCamera, frame: int, frd: list[float], window_s: float = 0.3
-                        ) -> tuple[bool | None, bool | None]:
+                        ) -> tuple[bool | None, bool | None, float | None]:
     """Does an evasion (forward, right, down m/s) commanded at ``frame`` move towards where
     the object will pass the vehicle (:func:`_true_passage`), and along the object's lateral
-    motion? Body axes are NED here (the vehicle flies north with yaw 0)."""
+    motion? And how far along the evasion's direction that passage lies (m). Body axes are
+    NED here (the vehicle flies north with yaw 0)."""
     return _direction_vs_passage(_true_passage(camera, frame, window_s), frd)
 
 
 def _direction_vs_passage(truth: tuple[np.ndarray, np.ndarray] | None, frd: list[float]
-                          ) -> tuple[bool | None, bool | None]:
+                          ) -> tuple[bool | None, bool | None, float | None]:
     """:func:`_direction_vs_truth` for a passage already worked out (``truth``:
     :func:`_true_passage`'s answer)."""
     if truth is None:
-        return None, None
+        return None, None, None
     passage, v = truth
     d = np.array([frd[1], frd[2]], float)
+    norm = float(np.linalg.norm(d))
+    if norm == 0:
+        return None, None, None
     lateral_passage, lateral_v = passage[1:], v[1:]
-    towards = bool(d @ lateral_passage > 0.05 * float(np.linalg.norm(d))) if np.linalg.norm(d) else None
+    along = float(d @ lateral_passage) / norm
     into = bool(d @ lateral_v > 0) if np.linalg.norm(lateral_v) > 0.3 else None
-    return towards, into
+    return along > TOWARDS_TOLERANCE_M, into, round(along, 3)
 
 
 def _episodes(frames: list[int], gap: int = 15) -> int:
