@@ -142,7 +142,7 @@ def default_workers() -> int:
 # ---------------------------------------------------------------------------- the report
 
 
-def _by(rows: list[EncounterResult]) -> str:
+def _wrong_by(rows: list[EncounterResult]) -> str:
     """How far along the escape each passage moved towards lay (m), for the report: a few
     centimetres is a passage at the line of flight, decided on noise; a metre, a wrong side."""
     along = sorted(r.passage_along_m for r in rows if r.towards_passage and r.passage_along_m is not None)
@@ -263,7 +263,8 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
         towards = sum(bool(r.towards_passage) for r in crossing)
         into = sum(bool(r.into_path) for r in crossing)
         lines += [f"Direction (from the truth, first evasion of encounters approaching at 20–50°): "
-                  f"{towards} of {len(crossing)} moved towards the object's true passage{_by(crossing)}; "
+                  f"{towards} of {len(crossing)} moved towards the object's true passage"
+                  f"{_wrong_by(crossing)}; "
                   f"{into} of {len(crossing)} moved along its lateral motion (into its path, not behind it).",
                   ""]
     if crossing_set_rows:
@@ -271,7 +272,7 @@ def write_report(out: Path, rows: list[EncounterResult], free: list[EncounterRes
         lo, hi = CROSSING_MISS_M
         lines += [f"Crossing set ({len(crossing_set_rows)} encounters at 20–50°, each passing "
                   f"{lo:g}–{hi:g} m off if nobody moved): {sum(bool(r.towards_passage) for r in judged)} of "
-                  f"{len(judged)} first evasions moved towards the object's true passage{_by(judged)}; "
+                  f"{len(judged)} first evasions moved towards the object's true passage{_wrong_by(judged)}; "
                   f"{sum(bool(r.into_path) for r in judged)} along its lateral motion; avoided "
                   f"{_rate(crossing_set_rows)}.", ""]
     if wide:

@@ -459,12 +459,12 @@ def _direction_vs_passage(truth: tuple[np.ndarray, np.ndarray] | None, frd: list
         return None, None, None
     passage, v = truth
     d = np.array([frd[1], frd[2]], float)
+    lateral_passage, lateral_v = passage[1:], v[1:]
+    into = bool(d @ lateral_v > 0) if np.linalg.norm(lateral_v) > 0.3 else None
     norm = float(np.linalg.norm(d))
     if norm == 0:
-        return None, None, None
-    lateral_passage, lateral_v = passage[1:], v[1:]
+        return None, into, None
     along = float(d @ lateral_passage) / norm
-    into = bool(d @ lateral_v > 0) if np.linalg.norm(lateral_v) > 0.3 else None
     return along > TOWARDS_TOLERANCE_M, into, round(along, 3)
 
 
