@@ -282,3 +282,23 @@ def test_a_box_merged_with_the_structure_below_for_a_few_frames_keeps_the_bearin
     assert e is not None
     assert e.bearing[0] == pytest.approx(p[0] / p[2], abs=0.01)
     assert e.bearing[1] == pytest.approx(p[1] / p[2], abs=0.02)
+
+
+def test_the_uncut_side_of_a_box_cut_by_one_edge_moves_with_the_objects_near_side() -> None:
+    """An object crossing in past the left edge: the box's right side is its own, and its
+    bearing moves as the object's right side does (the centre's rate plus half the angular
+    size's); the other axis, uncut, has no inner edge, nor has a box cut on neither."""
+    d = 0.6
+    est, t, p, v = fly((-0.6 * 6.0, 0.2, 6.0), (1.5, 0.0, -3.0), 0.3, d)
+    assert box_of(p, d)[0] == 0.0
+    ex, ey = est.inner_edges()
+    assert ey is None and ex is not None and ex.side == -1
+
+    def right_side(q: np.ndarray) -> float:
+        return (q[0] + d / 2) / q[2]
+
+    dt = 0.15  # the window's middle: the fitted line's rate is the mean over it
+    rate = (right_side(p) - right_side(p - v * 2 * dt)) / (2 * dt)
+    assert ex.rate == pytest.approx(rate, rel=0.05)
+    whole, _, _, _ = fly((0.0, 0.0, 6.0), (0.5, 0.0, -3.0), 0.3, d)
+    assert whole.inner_edges() == (None, None)

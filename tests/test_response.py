@@ -11,7 +11,7 @@ import pytest
 
 from app.camera import CameraModel, Intrinsics
 from app.config import DecisionConfig
-from app.decision.policy import EVADE, NONE, STOP, DecisionMaker, ObjectState
+from app.decision.policy import EVADE, NONE, STOP, Command, DecisionMaker, ObjectState, passage_fields
 from app.decision.response import ResponseModel
 from app.perception.recognition import Cluster
 from app.perception.tracking import TrackReport
@@ -709,3 +709,67 @@ def test_the_wander_is_the_seeds_and_bounded() -> None:
         assert landed.pose()[1] == (0.0, 0.0, 0.0)  # on the ground nothing drifts
     finally:
         landed.stop()
+
+
+
+def _corner_course(p0: np.ndarray, v: np.ndarray, d: float, seconds: float) -> tuple[ObjectState, Command]:
+    """Feed the decision the boxes (cut by the frame) and flat depth of an object of ``d`` m on
+    the course p0 + v t for ``seconds``; its state and the command at the end."""
+    dm = DecisionMaker(CFG, CAM)
+    cmd, objects = Command(NONE), list[ObjectState]()
+    for i in range(int(round(seconds * 30)) + 1):
+        t = i / 30.0
+        x, y, z = p0 + v * t
+        s = K.fx * d / z
+        u, w = K.fx * x / z + K.ppx, K.fy * y / z + K.ppy
+        x0, y0 = max(0.0, u - s / 2), max(0.0, w - s / 2)
+        box = (x0, y0, min(K.width, u + s / 2) - x0, min(K.height, w + s / 2) - y0)
+        assert x0 == 0.0 and y0 == 0.0  # cut by the corner throughout
+        cmd, objects = dm.step([_report(1, box, t)], np.full((480, 640), int(z * 1000), np.uint16), t, ALT)
+    (o,) = objects
+    return o, cmd
+
+
+def test_an_object_entering_past_a_corner_gives_its_passage_by_its_uncut_sides() -> None:
+    """A 0.33 m object comes in past the frame's top-left corner 1.6 m off, flying right and
+    down while it closes, to pass 0.21 m right of and 0.14 m below the camera: no side of its
+    box is whole (no looming fit), but the uncut sides' motion puts the passage within 0.1 m
+    at its diameter, within the stated error at the ends of the plausible sizes' range, right
+    of and below the axis (where it is seen: up-left)."""
+    d = 0.33
+    p0, v = np.array([-0.75, -0.5, 1.6]), np.array([1.2, 0.8, -2.0])
+    o, _ = _corner_course(p0, v, d, 0.2)
+    truth = (p0 + v * 0.8)[:2]
+    assert o.source == "depth" and o.course_sizes is None and o.edge_course is not None
+    assert o.edge_course.at(d) == pytest.approx(tuple(truth), abs=0.1)
+    assert o.xyz_m[0] < 0 and o.xyz_m[1] < 0 and all(a > 0 for a in o.edge_course.at(0.15))
+    # the trigger keeps the depth track's own (wider) passage; the record has both
+    assert o.passages(0.15, 1.0)[0][2] > o.edge_course.std_m
+    recorded = passage_fields(o)["edge_course"]
+    assert recorded == {"offset_m": pytest.approx(list(o.edge_course.offset_m), abs=1e-3),
+                        "side": [-1, -1], "std_m": pytest.approx(o.edge_course.std_m, abs=1e-3)}
+
+
+def test_a_corner_objects_escape_follows_its_uncut_sides_not_a_young_depth_crossing() -> None:
+    """As measured in the open loop (seed 41's crossing set): an object entering past the
+    top-left corner 0.97 m off, its depth track's crossing (-0.03, -0.08) m known to 3 m, the
+    uncut right side's bearing moving right at 0.30 rad/s, the bottom still; it passed 0.11 m
+    right and 0.30 m above. By the crossing's centre the escape went right, 0.11 m towards
+    the passage; by the edge course (above the axis at every plausible size, right of it for
+    the small ones and left for the largest) it goes down, away from it."""
+    from app.decision.looming import InnerEdge
+    from app.decision.policy import edge_passage
+
+    o = ObjectState(4, (-0.9, -0.5, 0.97), 0.0, True, 1.09, 0.89, (-0.03, -0.08), tau_s=0.89,
+                    tau_std_s=0.1, crossing_std_m=3.03)
+    edge = edge_passage((InnerEdge(-1, 0.303, 0.017), InnerEdge(-1, 0.004, 0.015)), 0.97, 0.89, 0.1)
+    assert edge is not None and edge.std_m < o.crossing_std_m
+    truth = (0.107, -0.30)
+
+    def along(cmd: Command) -> float:
+        return cmd.right_mps * truth[0] + cmd.down_mps * truth[1]
+
+    before = DecisionMaker(CFG, CAM).decide_response([o], 0.0, ALT)
+    assert before.action == EVADE and along(before) > 0  # what the depth crossing alone does
+    after = DecisionMaker(CFG, CAM).decide_response([dataclasses.replace(o, edge_course=edge)], 0.0, ALT)
+    assert after.action == EVADE and after.down_mps > 0 and along(after) < 0

@@ -108,6 +108,21 @@ class _Sample:
     h_ok: bool
     flux: tuple[float, float] | None = None  # contrast flux and its std (photometry), grey x px²
     core: tuple[float, float] | None = None  # core area and its std (photometry), px²
+    # the frame edge that cuts the box on each axis: -1 left / top, +1 right / bottom, 0 none
+    # (or both: a box wider than the frame)
+    cut_u: int = 0
+    cut_v: int = 0
+
+
+@dataclass(frozen=True)
+class InnerEdge:
+    """The uncut side of a box that one frame edge cuts, over the window: which edge cuts
+    it (-1 left / top, +1 right / bottom) and how fast the uncut side's bearing moves
+    (d/dt of X/Z or Y/Z, 1/s, in the image's direction) with its standard error."""
+
+    side: int
+    rate: float
+    rate_std: float
 
 
 @dataclass(frozen=True)
@@ -285,13 +300,40 @@ class LoomingEstimator:
         top, bottom = y <= e, y + h >= H - e
         self._samples.append(_Sample(t_s, x + w / 2, y + h / 2, w, h,
                                      not (left or right), not (top or bottom),
-                                     not (left or right), not (top or bottom), flux, core))
+                                     not (left or right), not (top or bottom), flux, core,
+                                     int(right) - int(left), int(bottom) - int(top)))
         while self._samples and t_s - self._samples[0].t > self.window_s:
             self._samples.popleft()
 
     def estimate(self, t_s: float) -> ImageEstimate | None:
         """The fit over the window, extrapolated to ``t_s``; None with too few samples."""
         return self._estimate([s for s in self._samples if s.w_ok or s.h_ok], t_s, True)
+
+    def inner_edges(self) -> tuple[InnerEdge | None, InnerEdge | None]:
+        """Per axis (x, y), the uncut side's motion of a box that one frame edge has cut for
+        the newest samples (at least ``min_samples // 2``, three at the fewest), None where
+        the newest box is not cut on that axis or too few are. What an object entering the
+        frame past its edge shows of its course while no side of it is whole (see
+        :func:`app.decision.policy.edge_passage`)."""
+        k = self.k
+        out: list[InnerEdge | None] = []
+        for axis in (0, 1):
+            side = (self._samples[-1].cut_u if axis == 0 else self._samples[-1].cut_v) if self._samples else 0
+            run: list[_Sample] = []
+            for s in reversed(self._samples if side else ()):
+                if (s.cut_u if axis == 0 else s.cut_v) != side:
+                    break
+                run.append(s)
+            if len(run) < max(3, self.min_samples // 2):
+                out.append(None)
+                continue
+            c, fl = (k.ppx, k.fx) if axis == 0 else (k.ppy, k.fy)
+            # the uncut side: the centre less half the box towards the cutting edge's far side
+            run.reverse()
+            edge = [((s.u - side * s.w / 2 if axis == 0 else s.v - side * s.h / 2) - c) / fl for s in run]
+            line = _robust_line([s.t for s in run], edge, self.pixel_noise_px / fl)
+            out.append(None if line is None else InnerEdge(side, line.slope, math.sqrt(line.var_slope)))
+        return out[0], out[1]
 
     def _estimate(self, ss: list[_Sample], t_s: float, may_restart: bool) -> ImageEstimate | None:
         if len(ss) < self.min_samples:

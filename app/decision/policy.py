@@ -43,7 +43,7 @@ from app.camera import CameraModel
 from app.config import DecisionConfig, DetectionConfig, avoid_distance_m
 from app.decision.depth import blob_points, object_depth, range_error_m
 from app.decision.ego import EgoMotion, static_fit
-from app.decision.looming import ImageEstimate, LoomingEstimator
+from app.decision.looming import ImageEstimate, InnerEdge, LoomingEstimator
 from app.decision.response import ResponseModel
 from app.perception.tracking import TrackReport
 
@@ -116,6 +116,44 @@ class Command:
 
 
 @dataclass(frozen=True)
+class EdgeCourse:
+    """Where an object whose box the frame's corner cuts crosses the camera plane, from the
+    uncut sides' motion: per axis (X, Y), ``offset_m`` + ``side`` x its diameter / 2, m, each
+    within ``std_m``."""
+
+    offset_m: tuple[float, float]
+    side: tuple[int, int]
+    std_m: float
+
+    def at(self, diameter_m: float) -> tuple[float, float]:
+        return (self.offset_m[0] + self.side[0] * diameter_m / 2,
+                self.offset_m[1] + self.side[1] * diameter_m / 2)
+
+
+def edge_passage(edges: tuple[InnerEdge | None, InnerEdge | None], z_m: float, tau_s: float,
+                 tau_std_s: float) -> EdgeCourse | None:
+    """The passage of an object whose box is cut on both axes (entering past a corner of the
+    frame), ``z_m`` ahead and ``tau_s`` from the camera plane.
+
+    On a straight relative course the bearing b = X/Z moves at b' with X_c = b'·Z·τ where
+    it crosses the plane: the side it passes on is the side its bearing moves to, at every
+    instant (the sign of b' never changes along the course). The cut hides the centre, but
+    the uncut side's bearing moves at e = b' - side·θ'/2 (the box grows away from the
+    cutting edge as it nears), and θ' = θ/τ = D/(Z·τ); so X_c = e·Z·τ + side·D/2 for a
+    diameter D. An object crossing into the frame moves its uncut side inwards, and passes
+    on the far side of the axis from where it is seen, unless within D/2 of the axis (where
+    it loomed in rather than moved in): the way the paper's rule (away from where it is) is
+    wrong for it (open loop, seed 41's crossing set: an object entering the corner 0.97 m
+    off, escaped away from where it was, passed 0.1 m along the escape)."""
+    ex, ey = edges
+    if ex is None or ey is None or z_m <= 0 or tau_s <= 0:
+        return None
+    zt = z_m * tau_s
+    std = max(math.hypot(e.rate_std * zt, e.rate * z_m * tau_std_s) for e in (ex, ey))
+    return EdgeCourse((ex.rate * zt, ey.rate * zt), (ex.side, ey.side), std)
+
+
+@dataclass(frozen=True)
 class ObjectState:
     """One confirmed object in 3-D (colour-camera XYZ, m)."""
 
@@ -151,6 +189,10 @@ class ObjectState:
     # seen in the image only: the depth of what its blob shows (its near surface, as
     # object_depth takes it, at any range the camera returns), m
     surface_m: float | None = None
+    # a depth track whose box a corner of the frame cuts (no side of it whole, no image
+    # course): its passage from the uncut sides' motion (see edge_passage), when that is
+    # more precise than the depth track's own crossing; the escape's direction only
+    edge_course: EdgeCourse | None = None
 
     def passages(self, d_min: float, d_max: float
                  ) -> list[tuple[float, tuple[float, float, float], float]]:
@@ -173,6 +215,16 @@ class ObjectState:
         t = _cpa_time(q, w)
         cpa = (q[0] + w[0] * t, q[1] + w[1] * t, q[2] + w[2] * t)
         return [(d, (cpa[0] * d, cpa[1] * d, cpa[2] * d), ms * d) for d in sizes]
+
+    def escape_passages(self, d_min: float, d_max: float
+                        ) -> list[tuple[float, tuple[float, float, float], float]]:
+        """The passages an escape's direction is chosen by: :meth:`passages`, or those of the
+        edge course where there is one. (The trigger keeps to :meth:`passages`: the cut box
+        tells on which side the object passes better than how far, and must not clear it.)"""
+        if self.edge_course is None:
+            return self.passages(d_min, d_max)
+        sizes = [self.diameter_m] if self.diameter_m is not None else [d_min, d_max]
+        return [(d, (*self.edge_course.at(d), 0.0), self.edge_course.std_m) for d in sizes]
 
     @property
     def z_m(self) -> float:
@@ -470,8 +522,11 @@ class DecisionMaker:
             tid = t.track_id
             tr = self._tracks.get(tid)
             if tr is not None and tr.measured_share() >= MIN_MEASURED_SHARE:
-                out.append(dataclasses.replace(self._fuse(tr.state(tid, t_s), image_of(tid), tid),
-                                               reported=t.reported))
+                image = image_of(tid)
+                state = self._fuse(tr.state(tid, t_s), image, tid)
+                if image is None:  # no side of its box whole (or too young a track)
+                    state = self._cut_by_corner(state, tid)
+                out.append(dataclasses.replace(state, reported=t.reported))
             elif t.reported or tid == engaged or c.unreported_looming_sigmas > 0:
                 # (an unreported track seen in the image only is clutter to perception, and the
                 # decision acts on it only when it clearly looms, if configured: otherwise its
@@ -505,6 +560,16 @@ class DecisionMaker:
                            course_sizes=_course(e),
                            static_miss_m=static.miss_m if static is not None else None,
                            static_miss_std_m=static.miss_std_m if static is not None else None)
+
+    def _cut_by_corner(self, o: ObjectState, tid: int) -> ObjectState:
+        """A fresh depth track whose box the frame's corner cuts, with its edge course
+        (:func:`edge_passage`) where that is more precise than its own crossing."""
+        if not o.fresh or o.tau_s is None or o.tau_std_s is None:
+            return o
+        edge = edge_passage(self._looming[tid].inner_edges(), o.z_m, o.tau_s, o.tau_std_s)
+        if edge is None or (o.crossing_m is not None and edge.std_m >= o.crossing_std_m):
+            return o
+        return dataclasses.replace(o, edge_course=edge)
 
     def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
         """The depth track's state with the image's looming: time to the passage by inverse
@@ -844,14 +909,14 @@ class DecisionMaker:
 
         def towards(d: tuple[float, float], o: ObjectState) -> bool:
             return any(d[0] * m[0] + d[1] * m[1] > k * std + 1e-9
-                       for _, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m))
+                       for _, m, std in o.escape_passages(c.object_diameter_min_m, c.object_diameter_max_m))
 
         def allowed(d: tuple[float, float]) -> bool:
             return (can_descend or d[1] <= 0) and not any(towards(d, o) for o in threats)
 
         if latched is not None and allowed(latched):
             return latched  # changes only once it moves towards a passage beyond the doubt
-        if not any(o.passages(c.object_diameter_min_m, c.object_diameter_max_m) for o in threats):
+        if not any(o.escape_passages(c.object_diameter_min_m, c.object_diameter_max_m) for o in threats):
             # Nothing says where any of them passes (the paper's distance rule on a depth track
             # too young to close): away from where the nearest is now, as the paper does, not
             # the first direction of the list (closed loop, seed 41: an object first measured
@@ -871,7 +936,7 @@ class DecisionMaker:
                 return self.response.displacement_m(t) * scale
 
             for o in threats:
-                for size, m, std in o.passages(c.object_diameter_min_m, c.object_diameter_max_m):
+                for size, m, std in o.escape_passages(c.object_diameter_min_m, c.object_diameter_max_m):
                     clearance = c.vehicle_radius_m + size / 2 + c.clearance_margin_m
                     miss = _closest_m(o, size, moved, u, m) - k * std
                     worst = min(worst, miss - clearance)
@@ -892,7 +957,7 @@ class DecisionMaker:
         # truth 0.21) was escaped up-left, whose miss was 0.02 m short of down-left's,
         # because it ran least with the object's motion
         centres = [m for o in threats
-                   for _, m, _ in o.passages(c.object_diameter_min_m, c.object_diameter_max_m)]
+                   for _, m, _ in o.escape_passages(c.object_diameter_min_m, c.object_diameter_max_m)]
 
         def away(d: tuple[float, float]) -> bool:
             return not any(d[0] * m[0] + d[1] * m[1] > 0.0 for m in centres)
@@ -1032,14 +1097,18 @@ def _closest_m(o: ObjectState, d: float, s_of_t: Callable[[float], float], u: tu
 
 def passage_fields(o: ObjectState) -> dict[str, object]:
     """The predicted passage of one object, for the flight record: its source (image, depth,
-    fused), time to it, and where (m: the known size, or the range of plausible ones)."""
+    fused), time to it, and where (m: the known size, or the range of plausible ones; for a
+    box the frame's corner cuts, its edge course)."""
     def r(v: float | None, n: int = 3) -> float | None:
         return None if v is None or not math.isfinite(v) else round(v, n)
 
     return {"source": o.source, "tau_s": r(o.tau_s), "tau_std_s": r(o.tau_std_s),
             "miss_sizes": None if o.miss_sizes is None else [r(v, 2) for v in o.miss_sizes],
             "miss_sizes_std": r(o.miss_sizes_std, 2), "diameter_m": r(o.diameter_m),
-            "static_miss_m": r(o.static_miss_m, 2)}
+            "static_miss_m": r(o.static_miss_m, 2),
+            "edge_course": None if o.edge_course is None else {
+                "offset_m": [r(v) for v in o.edge_course.offset_m], "side": list(o.edge_course.side),
+                "std_m": r(o.edge_course.std_m)}}
 
 
 def describe_direction(d: tuple[float, float]) -> str:
