@@ -572,9 +572,10 @@ class DecisionMaker:
         return dataclasses.replace(o, edge_course=edge)
 
     def _fuse(self, o: ObjectState, e: ImageEstimate | None, tid: int) -> ObjectState:
-        """The depth track's state with the image's looming: time to the passage by inverse
-        variance of the two, the passage from the image's bearing rate scaled by the size the
-        range gives (a depth velocity is too noisy at range to aim by)."""
+        """The depth track's state with the image's looming: the time to the passage from the
+        looming's rate (1/τ) and the ranges' own, by inverse variance, the passage from the
+        image's bearing rate scaled by the size the range gives (a depth velocity is too noisy
+        at range to aim by)."""
         seen = max(o.seen_s, self._seen.get(tid, -math.inf))  # matched in the image counts too
         if e is not None and e.tau_s is not None and e.tau_s > 0 and o.z_m / e.tau_s > MAX_CLOSING_MPS:
             e = None  # the range says its looming is impossible: a blob's size jumped, not the object
@@ -614,8 +615,8 @@ class DecisionMaker:
             # it would pass (open loop, seed 43's crossing set)
             tau, tau_std = e.tau_s, e.tau_std_s * max(1.0, gap)
             if o.range_rate_mps is not None and o.range_rate_std_mps is not None and o.z_m > 0:
-                # ... and the ranges' own closing (a line through them, owing nothing to the
-                # track's start), weighed against it in rates (1/τ, linear in both measures,
+                # the looming's τ weighed against the ranges' own closing (a line through them,
+                # owing nothing to the track's start) in rates (1/τ, linear in both measures,
                 # where their errors are near normal; in τ a looming of 1.9 ± 1.5 /s reads
                 # 0.53 ± 0.42 s and outweighs ranges that say 2.7 s to 0.1 s: a slow ball
                 # crossing at 44°, 6.8 m off, was escaped 2.9 s before its passage on the
