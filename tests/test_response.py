@@ -804,3 +804,28 @@ def test_a_corner_objects_escape_follows_its_uncut_sides_not_a_young_depth_cross
     assert before.action == EVADE and along(before) > 0  # what the depth crossing alone does
     after = DecisionMaker(CFG, CAM).decide_response([dataclasses.replace(o, edge_course=edge)], 0.0, ALT)
     assert after.action == EVADE and after.down_mps > 0 and along(after) < 0
+
+
+def test_a_fused_track_whose_ranges_lapse_while_its_image_looms_stays_fused() -> None:
+    """A bird 6 m off, fused: its ranges stop for 0.3 s (its blob over the ground) while its
+    looming goes on. The track stays fused on the image's τ and can trigger, though not fresh
+    (a stale range alone starts nothing); once the last range is older than max_hold_s, it is
+    a dead-reckoned depth track again, which starts nothing."""
+    from app.decision.looming import ImageEstimate
+
+    z, d, tau = 6.0, 0.3, 1.0
+    p, passage = (0.3, 0.1, z), (0.1, 0.0)
+    v = ((passage[0] - p[0]) / tau, (passage[1] - p[1]) / tau, -z / tau)
+    image = ImageEstimate(0.0, 15, (p[0] / z, p[1] / z), (0.0, 0.0), d / z, 1 / tau, 0.05, tau, 0.05,
+                          (passage[0] / d, passage[1] / d), 0.3, 0.0,
+                          tuple(c / d for c in p), tuple(c / d for c in v))  # type: ignore[arg-type]
+
+    def lapsed(since: float) -> ObjectState:
+        return ObjectState(1, p, -since, False, z / tau, tau, passage, tau_s=tau, tau_std_s=0.1,
+                           seen_s=0.0, crossing_std_m=0.5, closing_std_mps=0.5)
+
+    dm = DecisionMaker(CFG, CAM)
+    brief = dm._fuse(lapsed(0.3), image, 1)
+    assert brief.source == "fused" and not brief.fresh and dm.assess(brief) is not None
+    gone = dm._fuse(lapsed(CFG.max_hold_s + 0.1), image, 1)
+    assert gone.source == "depth" and dm.assess(gone) is None
