@@ -743,11 +743,11 @@ def test_the_wander_is_the_seeds_and_bounded() -> None:
 
 
 
-def _corner_course(p0: np.ndarray, v: np.ndarray, d: float, seconds: float) -> tuple[ObjectState, Command]:
+def _corner_course(p0: np.ndarray, v: np.ndarray, d: float, seconds: float) -> ObjectState:
     """Feed the decision the boxes (cut by the frame) and flat depth of an object of ``d`` m on
-    the course p0 + v t for ``seconds``; its state and the command at the end."""
+    the course p0 + v t for ``seconds``; its state at the end."""
     dm = DecisionMaker(CFG, CAM)
-    cmd, objects = Command(NONE), list[ObjectState]()
+    objects: list[ObjectState] = []
     for i in range(int(round(seconds * 30)) + 1):
         t = i / 30.0
         x, y, z = p0 + v * t
@@ -756,9 +756,9 @@ def _corner_course(p0: np.ndarray, v: np.ndarray, d: float, seconds: float) -> t
         x0, y0 = max(0.0, u - s / 2), max(0.0, w - s / 2)
         box = (x0, y0, min(K.width, u + s / 2) - x0, min(K.height, w + s / 2) - y0)
         assert x0 == 0.0 and y0 == 0.0  # cut by the corner throughout
-        cmd, objects = dm.step([_report(1, box, t)], np.full((480, 640), int(z * 1000), np.uint16), t, ALT)
+        _, objects = dm.step([_report(1, box, t)], np.full((480, 640), int(z * 1000), np.uint16), t, ALT)
     (o,) = objects
-    return o, cmd
+    return o
 
 
 def test_an_object_entering_past_a_corner_gives_its_passage_by_its_uncut_sides() -> None:
@@ -769,7 +769,7 @@ def test_an_object_entering_past_a_corner_gives_its_passage_by_its_uncut_sides()
     of and below the axis (where it is seen: up-left)."""
     d = 0.33
     p0, v = np.array([-0.75, -0.5, 1.6]), np.array([1.2, 0.8, -2.0])
-    o, _ = _corner_course(p0, v, d, 0.2)
+    o = _corner_course(p0, v, d, 0.2)
     truth = (p0 + v * 0.8)[:2]
     assert o.source == "depth" and o.course_sizes is None and o.edge_course is not None
     assert o.edge_course.at(d) == pytest.approx(tuple(truth), abs=0.1)
